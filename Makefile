@@ -1,0 +1,46 @@
+# RenderWorld: two commands from a fresh clone.
+#   make test   set up .venv (torch pinned first) and run the default test suite
+#   make demo   set up .venv and run the most complete job the package can do
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+TORCH_SPEC ?= torch==2.13.0
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.renderworld-installed
+
+.PHONY: setup test test-all lint demo bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@set -e; \
+	if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "[setup] installing Debian libusb-1.0-0 (needed by open3d)"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	  else \
+	    echo "[setup] WARNING: libusb-1.0-0 is missing and cannot be installed here (not root or no apt-get)."; \
+	    echo "[setup]          open3d (simulator only) will fail to import; install it with: sudo apt-get install libusb-1.0-0"; \
+	  fi; \
+	fi
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q "$(TORCH_SPEC)"
+	$(PY) -m pip install -q -e '.[test]'
+	@touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+test-all: $(STAMP)
+	$(PY) -m pytest -q -m ''
+
+lint: $(STAMP)
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+
+demo: $(STAMP)
+	$(PY) tools/run_pipeline.py
+
+clean:
+	rm -rf $(VENV) .cache .pytest_cache
