@@ -1,0 +1,94 @@
+"""The official nuScenes devkit as a test oracle, in its own cached virtual environment.
+
+The devkit pins numpy < 2 and depends on pyquaternion, so it cannot live next to the package's
+runtime dependencies. :func:`devkit_python` builds ``.cache/devkit-venv`` once (pip, from the
+package registry) and returns its interpreter; :func:`run_devkit` runs a snippet there and
+returns what it printed as JSON.
+
+Set ``RENDERWORLD_DEVKIT_VENV`` to reuse a venv elsewhere. If the venv cannot be built (no
+registry access), tests using :func:`devkit_python` fail with the pip log rather than skip.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import venv
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+DEVKIT_SPEC = ("nuscenes-devkit==1.2.0", "numpy<2")
+_STAMP = ".devkit-ready"
+
+
+def devkit_venv_dir() -> Path:
+    """Devkit venv dir: ``RENDERWORLD_DEVKIT_VENV`` or ``<repo>/.cache/devkit-venv``."""
+    env = os.environ.get("RENDERWORLD_DEVKIT_VENV")
+    return Path(env) if env else REPO_ROOT / ".cache" / "devkit-venv"
+
+
+def devkit_python() -> Path:
+    """Return the devkit venv's python, building the venv once (file-locked, cached).
+
+    Raises:
+        RuntimeError: with pip's output when the venv cannot be built.
+    """
+    root = devkit_venv_dir()
+    py = root / "bin" / "python"
+    if (root / _STAMP).exists():
+        return py
+    root.parent.mkdir(parents=True, exist_ok=True)
+    with open(root.parent / ".devkit-venv.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if (root / _STAMP).exists():
+            return py
+        if not py.exists():
+            venv.EnvBuilder(with_pip=True, clear=True).create(root)
+        cmd = [str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check", *DEVKIT_SPEC]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise RuntimeError(
+                f"building the nuScenes devkit venv at {root} failed:\n{proc.stdout}\n{proc.stderr}"
+            )
+        (root / _STAMP).write_text(" ".join(DEVKIT_SPEC))
+    return py
+
+
+def run_devkit(snippet: str, *args: str, timeout: float = 600) -> object:
+    """Run a Python snippet in the devkit venv and parse the JSON it prints last.
+
+    Args:
+        snippet: Python source; it must ``print(json.dumps(...))`` as its last output line.
+            ``sys.argv[1:]`` holds ``args``.
+        *args: string arguments passed to the snippet.
+        timeout: seconds.
+
+    Returns:
+        The decoded JSON value.
+
+    Raises:
+        RuntimeError: with the snippet's stderr when it fails.
+    """
+    py = devkit_python()
+    proc = subprocess.run(
+        [str(py), "-c", textwrap.dedent(snippet), *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env={k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")},
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"devkit snippet failed (rc={proc.returncode}):\n{proc.stderr[-4000:]}")
+    lines = [ln for ln in proc.stdout.splitlines() if ln.strip()]
+    if not lines:
+        raise RuntimeError(f"devkit snippet printed nothing; stderr:\n{proc.stderr[-4000:]}")
+    return json.loads(lines[-1])
+
+
+if __name__ == "__main__":  # pragma: no cover - manual helper
+    print(devkit_python())
+    sys.exit(0)
