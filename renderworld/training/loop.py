@@ -345,6 +345,12 @@ class Trainer:
             )
             batches = iter(loader)
             while self.batch_in_epoch // tcfg.grad_accum < self.steps_per_epoch:
+                if tcfg.max_minutes is not None:
+                    # Checked before a step, so a resumed run whose budget is spent does none.
+                    elapsed = base_elapsed + time.monotonic() - t0
+                    stopped_early = any_rank(elapsed >= tcfg.max_minutes * 60.0, info)
+                    if stopped_early:
+                        break
                 sums, norm = self._optimizer_step(batches)
                 self.step += 1
                 self.batch_in_epoch += tcfg.grad_accum
@@ -377,13 +383,10 @@ class Trainer:
                     logger.log(metrics, self.step, self.epoch)
                     self._after_validation(metrics)
                     validated_at = self.step
-                if tcfg.max_minutes is not None:
-                    over = self.elapsed_s >= tcfg.max_minutes * 60.0
-                    stopped_early = any_rank(over, info) and self.step < self.total_steps
-                if tcfg.ckpt_every and self.step % tcfg.ckpt_every == 0 or stopped_early:
+                if tcfg.ckpt_every and self.step % tcfg.ckpt_every == 0:
                     self.save("last.pt")
                     saved_at = self.step
-                if stopped_early or self.step >= self.total_steps:
+                if self.step >= self.total_steps:
                     break
             else:
                 self.epoch += 1

@@ -62,10 +62,16 @@ class RegressionStage(Stage):
         return train, val
 
     def loss(self, model: nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, Any]]:
-        if self.cfg.stage.step_sleep:
-            time.sleep(float(self.cfg.stage.step_sleep))
+        s = self.cfg.stage
+        self.calls = getattr(self, "calls", 0) + 1
+        if s.step_sleep:
+            time.sleep(float(s.step_sleep))
+        if s.crash_at_call is not None and self.calls == s.crash_at_call:
+            raise RuntimeError(f"simulated crash at loss call {self.calls}")
         err = model(batch["x"]) - batch["y"]
         mse = err.pow(2).mean()
+        if s.nan_at_call is not None and self.calls == s.nan_at_call:
+            mse = mse * float("nan")
         return mse, {"mae": err.abs().mean()}
 
     def evaluate(self, model: nn.Module, loader: Any) -> dict[str, torch.Tensor]:
