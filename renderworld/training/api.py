@@ -33,7 +33,12 @@ from renderworld.training.distributed import (
     shutdown_distributed,
 )
 from renderworld.training.loggers import MetricLogger, truncate_metrics_csv
-from renderworld.training.loop import Trainer, build_val_loader, run_validation
+from renderworld.training.loop import (
+    Trainer,
+    build_val_loader,
+    effective_precision,
+    run_validation,
+)
 from renderworld.training.registry import Stage, get_stage
 from renderworld.training.seed import seed_everything
 
@@ -131,7 +136,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         model.load_state_dict(ckpt["model"], strict=True)
         model.to(info.device)
         loader = build_val_loader(stage, val_set, tcfg, info, int(cfg.seed))
-        precision = "32" if info.device.type != "cuda" else tcfg.precision
+        precision = effective_precision(tcfg.precision, info.device)
         metrics = run_validation(stage, model, loader, info, precision)
         metrics["step"] = float(ckpt["step"])
         if info.is_main:

@@ -41,7 +41,13 @@ from renderworld.training.optim import build_optimizer, build_scheduler
 from renderworld.training.registry import Stage
 from renderworld.training.seed import get_rng_state, rng_isolated, seed_everything, set_rng_state
 
-__all__ = ["Trainer", "autocast_context", "run_validation", "build_val_loader"]
+__all__ = [
+    "Trainer",
+    "autocast_context",
+    "effective_precision",
+    "run_validation",
+    "build_val_loader",
+]
 
 log = logging.getLogger("renderworld.training")
 
@@ -311,6 +317,20 @@ class Trainer:
     def fit(self, logger: MetricLogger) -> dict[str, float]:
         """Train until max_steps / max_epochs / max_minutes; return final metrics."""
         tcfg, info = self.tcfg, self.info
+        if info.is_main:
+            log.info(
+                "training %s in %s: step %d/%d, %d steps/epoch, %d rank(s) on %s, "
+                "global batch %d, precision %s",
+                self.stage.name,
+                self.run_dir,
+                self.step,
+                self.total_steps,
+                self.steps_per_epoch,
+                info.world_size,
+                info.device,
+                tcfg.batch_size * tcfg.grad_accum * info.world_size,
+                self.precision,
+            )
         self.model.train()
         self.stage.on_train_start(self.model, str(self.run_dir))
         bar = tqdm(

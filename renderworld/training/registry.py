@@ -68,7 +68,8 @@ class Stage(ABC):
 
         Called under ``torch.no_grad()`` with the model in eval mode. Values are float tensors
         that may be summed across ranks: sums and counts (see ``sum_count``), confusion
-        matrices... ``compute_metrics`` turns the summed statistics into metrics.
+        matrices... ``compute_metrics`` turns the summed statistics into metrics. Every rank
+        must return the same keys and shapes, also for an empty shard (zeros).
         """
 
     # ---------------------------------------------------------------- optional hooks

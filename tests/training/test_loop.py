@@ -186,3 +186,28 @@ def test_tensorboard_is_used_when_installed(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", fake)
     train(fit_cfg(tmp_path, "trainer.tensorboard=true", "trainer.max_steps=10"))
     assert ("train/loss", 10) in logged and ("val/loss", 10) in logged
+
+
+@pytest.mark.slow
+def test_worker_count_does_not_change_results(tmp_path):
+    """Per-sample seeding: augmentation in workers depends on (seed, epoch, index) only."""
+    common = ["stage.jitter=0.1", "trainer.max_steps=20"]
+    train(fit_cfg(tmp_path / "w1", *common, "trainer.num_workers=1"))
+    train(fit_cfg(tmp_path / "w2", *common, "trainer.num_workers=2"))
+    p1, p2 = (
+        params_of(tmp_path / "w1/checkpoints/last.pt"),
+        params_of(tmp_path / "w2/checkpoints/last.pt"),
+    )
+    for k in p1:
+        assert torch.equal(p1[k], p2[k]), k
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("precision", ["32", "bf16", "fp16"])
+def test_cuda_mixed_precision_learns(tmp_path, precision):
+    metrics = train(fit_cfg(tmp_path, "trainer.device=cuda", f"trainer.precision={precision}"))
+    assert metrics["val/loss"] < 0.05
+    ckpt = load_checkpoint(tmp_path / "checkpoints" / "last.pt", for_training=True)
+    assert all(t.device.type == "cpu" for t in ckpt["model"].values())
+    assert bool(ckpt["grad_scaler"]) == (precision == "fp16")
