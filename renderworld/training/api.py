@@ -33,14 +33,10 @@ from renderworld.training.distributed import (
     shutdown_distributed,
 )
 from renderworld.training.loggers import MetricLogger, truncate_metrics_csv
-from renderworld.training.loop import (
-    Trainer,
-    build_val_loader,
-    effective_precision,
-    run_validation,
-)
+from renderworld.training.loop import Trainer
 from renderworld.training.registry import Stage, get_stage
 from renderworld.training.seed import seed_everything
+from renderworld.training.validation import build_val_loader, effective_precision, run_validation
 
 __all__ = ["train", "evaluate", "objective", "hydra_argv"]
 
@@ -81,7 +77,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
             )
         stage = _build_stage(cfg)
         yaml_text = config_to_yaml(cfg)
-        trainer = Trainer(stage, cfg, run_dir, info, tcfg, ocfg, scfg, int(cfg.seed), yaml_text)
+        trainer = Trainer(stage, cfg, run_dir, info, tcfg, ocfg, scfg, _seed(cfg), yaml_text)
         if ckpt is not None:
             trainer.load_state_dict(ckpt, source=f"checkpoint {str(last)!r}")
         # Only now, with everything validated, write into the run directory.
@@ -127,7 +123,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         ckpt_path = Path(str(cfg.ckpt))
         ckpt = load_checkpoint(ckpt_path, expected_stage=str(cfg.stage.name))
         stage = _build_stage(cfg)
-        seed_everything(int(cfg.seed))
+        seed_everything(_seed(cfg))
         _, val_set = stage.build_datasets(cfg)
         if val_set is None:
             raise ValueError(f"stage {stage.name!r}: build_datasets returned no validation set")
@@ -135,7 +131,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         check_state_dict_keys(model, ckpt["model"], source=f"checkpoint {str(ckpt_path)!r}")
         model.load_state_dict(ckpt["model"], strict=True)
         model.to(info.device)
-        loader = build_val_loader(stage, val_set, tcfg, info, int(cfg.seed))
+        loader = build_val_loader(stage, val_set, tcfg, info, _seed(cfg))
         precision = effective_precision(tcfg.precision, info.device)
         metrics = run_validation(stage, model, loader, info, precision)
         metrics["step"] = float(ckpt["step"])
@@ -235,6 +231,13 @@ def _resolve(cfg: Any, info: DistInfo) -> tuple[DictConfig, Path]:
     if "stage" not in out or "name" not in out.stage:
         raise ValueError("stage: no stage selected; pass stage=<name> (see configs/README.md)")
     return out, Path(run_dir)
+
+
+def _seed(cfg: DictConfig) -> int:
+    seed = cfg.get("seed")
+    if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**31:
+        raise ValueError(f"seed: expected an int in [0, 2**31), got {seed!r}")
+    return seed
 
 
 def _build_stage(cfg: DictConfig) -> Stage:

@@ -153,6 +153,11 @@ def test_missing_required_key_fails_clearly(tmp_path):
         train(fit_cfg(tmp_path, "+stage.upstream_ckpt=???"))
 
 
+def test_bad_seed_fails_clearly(tmp_path):
+    with pytest.raises(ValueError, match=r"seed: expected an int in \[0, 2\*\*31\), got -1"):
+        train(fit_cfg(tmp_path, "seed=-1"))
+
+
 def test_unknown_stage_module_fails_clearly(tmp_path):
     cfg = fit_cfg(tmp_path, "stage.name=nope", "stage._target_module_=tests.training.no_such")
     with pytest.raises(ValueError, match="stage 'nope': cannot import its module"):
