@@ -7,7 +7,7 @@ A checkpoint is a dict of tensors, dicts, lists and primitives only, so it loads
     stage           str       registered stage name
     step            int       optimizer steps done
     epoch           int       current epoch
-    batch_in_epoch  int       micro-batches of this epoch already consumed (per rank)
+    samples_in_epoch int      samples of this epoch already consumed, all ranks together
     elapsed_s       float     training wall time so far, summed over resumed segments
     world_size      int
     config          str       the resolved run config, YAML
@@ -42,7 +42,7 @@ __all__ = [
 
 CHECKPOINT_SCHEMA_VERSION = 1
 REQUIRED_KEYS = ("schema_version", "stage", "step", "config", "model")
-TRAINING_KEYS = ("optimizer", "scheduler", "rng", "epoch", "batch_in_epoch")
+TRAINING_KEYS = ("optimizer", "scheduler", "rng", "epoch", "samples_in_epoch")
 _MAX_LISTED = 20
 
 

@@ -63,29 +63,34 @@ class ShardedSampler(Sampler[int]):
         self.start = 0
 
     def set_epoch(self, epoch: int, start: int = 0) -> None:
-        """Select the epoch and skip the first ``start`` indices of this rank's shard."""
+        """Select the epoch and skip its first ``start`` samples (a global position, all ranks).
+
+        Positions ``[0, start)`` of the epoch's order are what all ranks consumed together; the
+        rest is dealt out again over the current ranks, so a resume may change their number.
+        """
         if start < 0:
             raise ValueError(f"start: expected >= 0, got {start}")
         self.epoch = epoch
         self.start = start
 
     def shard(self) -> list[int]:
-        """This rank's full shard for the current epoch (ignoring ``start``)."""
+        """This rank's indices for the rest of the current epoch (from ``start`` on)."""
         n = self.num_samples
         if self.shuffle:
             gen = torch.Generator().manual_seed(self.seed + self.epoch)
             order = torch.randperm(n, generator=gen).tolist()
         else:
             order = list(range(n))
+        order = order[self.start :]
         if self.drop_last:
-            order = order[: (n // self.num_replicas) * self.num_replicas]
+            order = order[: (len(order) // self.num_replicas) * self.num_replicas]
         return order[self.rank :: self.num_replicas]
 
     def __iter__(self) -> Iterator[int]:
-        return iter(self.shard()[self.start :])
+        return iter(self.shard())
 
     def __len__(self) -> int:
-        return max(0, len(self.shard()) - self.start)
+        return len(self.shard())
 
 
 class SeededDataset(Dataset):

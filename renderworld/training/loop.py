@@ -127,7 +127,7 @@ class Trainer:
             build_val_loader(stage, val_set, tcfg, info, seed) if val_set is not None else None
         )
 
-        self.step = self.epoch = self.batch_in_epoch = 0
+        self.step = self.epoch = self.samples_in_epoch = 0
         self.elapsed_s = 0.0
         self.best: dict[str, Any] = {"metric": tcfg.monitor, "value": None, "step": None}
         self.val_metrics: dict[str, float] = {}
@@ -143,7 +143,7 @@ class Trainer:
             "stage": self.stage.name,
             "step": self.step,
             "epoch": self.epoch,
-            "batch_in_epoch": self.batch_in_epoch,
+            "samples_in_epoch": self.samples_in_epoch,
             "elapsed_s": self.elapsed_s,
             "world_size": self.info.world_size,
             "config": self.config_yaml,
@@ -165,7 +165,7 @@ class Trainer:
         if self.scaler.is_enabled() and ckpt.get("grad_scaler"):
             self.scaler.load_state_dict(ckpt["grad_scaler"])
         self.step, self.epoch = int(ckpt["step"]), int(ckpt["epoch"])
-        self.batch_in_epoch = int(ckpt["batch_in_epoch"])
+        self.samples_in_epoch = int(ckpt["samples_in_epoch"])
         self.elapsed_s = float(ckpt.get("elapsed_s", 0.0))
         self.best = dict(ckpt.get("best") or self.best)
         self.val_metrics = dict(ckpt.get("metrics") or {})
@@ -175,7 +175,8 @@ class Trainer:
         else:
             warnings.warn(
                 f"{source}: saved with {len(rng)} rank(s), resuming with "
-                f"{self.info.world_size}: RNG streams are re-seeded, resume is not bit-exact",
+                f"{self.info.world_size}: the data position is kept but RNG streams are "
+                "re-seeded, so the resume is not bit-exact",
                 RuntimeWarning,
                 stacklevel=2,
             )
@@ -286,7 +287,9 @@ class Trainer:
         max_epochs = tcfg.max_epochs if tcfg.max_epochs is not None else math.inf
 
         while self.step < self.total_steps and self.epoch < max_epochs and not stopped_early:
-            self.sampler.set_epoch(self.epoch, start=self.batch_in_epoch * tcfg.batch_size)
+            # Global position: a resume may even change the number of ranks or the batch size.
+            self.sampler.set_epoch(self.epoch, start=self.samples_in_epoch)
+            steps_left = len(self.sampler) // tcfg.batch_size // tcfg.grad_accum
             self.train_set.epoch = self.epoch
             loader = make_loader(
                 self.train_set,
@@ -299,7 +302,7 @@ class Trainer:
                 seed=self.seed,
             )
             batches = iter(loader)
-            while self.batch_in_epoch // tcfg.grad_accum < self.steps_per_epoch:
+            for _ in range(steps_left):
                 if tcfg.max_minutes is not None:
                     # Checked before a step, so a resumed run whose budget is spent does none.
                     elapsed = base_elapsed + time.monotonic() - t0
@@ -308,7 +311,7 @@ class Trainer:
                         break
                 sums, norm = self._optimizer_step(batches)
                 self.step += 1
-                self.batch_in_epoch += tcfg.grad_accum
+                self.samples_in_epoch += samples_per_step
                 self.elapsed_s = base_elapsed + time.monotonic() - t0
                 for k, v in sums.items():
                     window[k] = window.get(k, 0) + v
@@ -345,7 +348,7 @@ class Trainer:
                     break
             else:
                 self.epoch += 1
-                self.batch_in_epoch = 0
+                self.samples_in_epoch = 0
         bar.close()
         if stopped_early:
             log.info(

@@ -95,6 +95,20 @@ def test_crash_and_resume_is_exact(tmp_path, workers, steps, crash_call, ckpt_st
     assert (tmp_path / "run" / f"config.resume-step{ckpt_step}.yaml").exists()
 
 
+def test_resume_may_change_the_micro_batch_layout(tmp_path):
+    """The data position is global: resuming batch 16 as 8 x 2 accumulation sees the same data."""
+    common = ["trainer.max_steps=40", "trainer.ckpt_every=7"]
+    train(fit_cfg(tmp_path / "ref", *common))
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(fit_cfg(tmp_path / "run", *common, "stage.crash_at_call=24"))
+    layout = ["trainer.batch_size=8", "trainer.grad_accum=2"]
+    assert train(fit_cfg(tmp_path / "run", *common, *layout, "resume=true"))["step"] == 40
+    ref = params_of(tmp_path / "ref/checkpoints/last.pt")
+    got = params_of(tmp_path / "run/checkpoints/last.pt")
+    for k in ref:
+        torch.testing.assert_close(got[k], ref[k], rtol=1e-5, atol=1e-6)
+
+
 def test_gradient_accumulation_matches_a_larger_batch(tmp_path):
     a = train(fit_cfg(tmp_path / "a", "trainer.max_steps=20", "trainer.batch_size=16"))
     b = train(

@@ -38,6 +38,15 @@ def test_sampler_resumes_mid_epoch_and_validation_shards_do_not_repeat():
     full = list(s)
     s.set_epoch(2, start=4)
     assert list(s) == full[4:] and len(s) == 7
+    # Two ranks stopped after 4 samples (2 each) resume on three ranks with the rest of the order.
+    two = [ShardedSampler(11, num_replicas=2, rank=r) for r in range(2)]
+    for t in two:
+        t.set_epoch(2)
+    assert sorted(list(two[0])[:2] + list(two[1])[:2]) == sorted(full[:4])
+    three = [ShardedSampler(11, num_replicas=3, rank=r) for r in range(3)]
+    for t in three:
+        t.set_epoch(2, start=4)
+    assert sorted(i for t in three for i in t) == sorted(full[4:10])  # 7 left, 6 dealt evenly
     val = [
         ShardedSampler(11, num_replicas=3, rank=r, shuffle=False, drop_last=False) for r in range(3)
     ]
