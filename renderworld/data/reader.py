@@ -26,6 +26,7 @@ from renderworld.constants import (
 )
 from renderworld.data.errors import DatasetError
 from renderworld.data.occ3d import Occ3DLabels, load_occ3d_labels
+from renderworld.data.table_cache import TableCache
 from renderworld.data.tables import check_chain, check_references, read_table
 from renderworld.geometry.poses import pose_matrix
 
@@ -72,6 +73,9 @@ class NuScenesReader:
     Args:
         dataroot: folder holding ``<version>/``, ``samples/``, ``lidarseg/``, ``gts/`` ...
         version: e.g. ``"v1.0-mini"`` or ``"v1.0-trainval"``.
+        cache: keep validated tables as parquet in a user cache folder, so the next load of
+            the same, unchanged tables skips JSON parsing and checks (see ``table_cache``).
+        cache_dir: cache root (default ``$RENDERWORLD_CACHE_DIR`` or ``~/.cache/renderworld``).
 
     Raises:
         DatasetError: if the dataroot or version folder is missing, or a required table file
@@ -83,7 +87,13 @@ class NuScenesReader:
         >>> pts = r.lidar_points(r.sample_data_token(tok, "LIDAR_TOP"))  # [N, 5] float32
     """
 
-    def __init__(self, dataroot: str | os.PathLike, version: str = "v1.0-mini"):
+    def __init__(
+        self,
+        dataroot: str | os.PathLike,
+        version: str = "v1.0-mini",
+        cache: bool = True,
+        cache_dir: str | os.PathLike | None = None,
+    ):
         self.dataroot = Path(dataroot)
         self.version = version
         if not self.dataroot.is_dir():
@@ -99,6 +109,9 @@ class NuScenesReader:
         self._root_resolved = self.dataroot.resolve()
         self._tables: dict[str, pd.DataFrame] = {}
         self._loading: set[str] = set()
+        self._cache = (
+            TableCache(self.version_dir, Path(cache_dir) if cache_dir else None) if cache else None
+        )
 
     def __repr__(self) -> str:
         return f"NuScenesReader({str(self.dataroot)!r}, version={self.version!r})"
@@ -119,6 +132,10 @@ class NuScenesReader:
             return self._tables[name]
         if name not in NUSCENES_TABLES and name != "lidarseg":
             raise ValueError(f"name: unknown table {name!r}; expected one of {NUSCENES_TABLES}")
+        cached = self._cache.get(name) if self._cache else None
+        if cached is not None:  # validated when it was cached; the key covers every table
+            self._tables[name] = cached
+            return cached
         df = read_table(self.version_dir, name)
         self._tables[name] = df
         self._loading.add(name)
@@ -134,6 +151,8 @@ class NuScenesReader:
             raise
         finally:
             self._loading.discard(name)
+        if self._cache:
+            self._cache.put(name, df)
         return df
 
     def load_all(self) -> NuScenesReader:

@@ -55,6 +55,12 @@ def test_record_missing_field(root):
         NuScenesReader(root, VERSION).table("ego_pose")
 
 
+def test_field_of_wrong_type(root):
+    edit(root, "sample", lambda recs: recs[2].update(timestamp="soon"))
+    with pytest.raises(DatasetError, match=r"sample.json: Expected `int`, got `str` - at `\$\[2\]"):
+        NuScenesReader(root, VERSION).table("sample")
+
+
 def test_duplicate_token(root):
     edit(root, "sensor", lambda recs: recs.append(dict(recs[0])))
     with pytest.raises(DatasetError, match=r"sensor.json: token '.*' appears more than once"):
@@ -195,5 +201,5 @@ def test_table_name_is_checked(root):
 
 def test_json_table_not_a_list(root):
     (root / VERSION / "log.json").write_text(json.dumps({"token": "x"}))
-    with pytest.raises(DatasetError, match=r"log.json: expected a JSON list of records, got dict"):
+    with pytest.raises(DatasetError, match=r"log.json: expected a JSON list of records"):
         NuScenesReader(root, VERSION).table("log")

@@ -70,3 +70,32 @@ def test_boxes(tiny):
 def test_load_all(tiny):
     assert tiny.load_all() is tiny
     assert set(tiny._tables) >= {"sample", "lidarseg", "map"}
+
+
+def test_table_cache_round_trip_and_invalidation(tmp_path):
+    import json
+
+    build_tiny_dataset(tmp_path / "c")
+    cold = NuScenesReader(tmp_path / "c", VERSION).load_all()
+    warm = NuScenesReader(tmp_path / "c", VERSION)
+    assert warm._cache.get("sample_data") is not None
+    for name in ("sample", "sample_data", "calibrated_sensor", "sample_annotation"):
+        a, b = cold.table(name), warm.table(name)
+        assert list(a.index) == list(b.index)
+        for col in a.columns:
+            assert a[col].tolist() == b[col].tolist(), (name, col)
+    s = warm.scene_samples("scene-0061")[1]
+    cam = warm.sample_data_token(s, "CAM_FRONT")
+    np.testing.assert_allclose(warm.sensor_to_ego(cam), cold.sensor_to_ego(cam))
+    assert warm.sample_boxes(s).equals(cold.sample_boxes(s))
+    # Editing any table invalidates the cache: the edit is checked, not served stale.
+    path = tmp_path / "c" / VERSION / "ego_pose.json"
+    poses = json.loads(path.read_text())
+    path.write_text(json.dumps(poses[1:]))
+    from renderworld.data import DatasetError
+
+    with pytest.raises(DatasetError, match="ego_pose_token="):
+        NuScenesReader(tmp_path / "c", VERSION).table("sample_data")
+    # cache=False never touches the cache folder.
+    NuScenesReader(tmp_path / "c", VERSION, cache=False, cache_dir=tmp_path / "nocache")
+    assert not (tmp_path / "nocache").exists()
