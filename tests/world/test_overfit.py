@@ -29,32 +29,27 @@ def moving_blob_sequences(length=7):
 
 def test_tiny_world_model_learns_motion_better_than_copy_paste():
     torch.manual_seed(0)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny tensors: one thread is fastest and stable on a busy box
-    try:
-        tokens, disps = moving_blob_sequences()
-        (inp, inp_d), tgt = teacher_forcing_split(tokens, disps)
-        cmd = torch.full((tokens.shape[0],), 2)
-        cfg = WorldModelConfig(
-            codebook_sizes=(3, 18), token_grid=(H, W), embed_dim=24, num_heads=2,
-            num_scales=2, layers_per_scale=(1, 1), history_frames=2, future_frames=5,
-        )  # fmt: skip
-        model = WorldModel(cfg)
-        opt = torch.optim.AdamW(model.parameters(), lr=3e-3)
-        first = None
-        for _ in range(STEPS):
-            out = model(inp, inp_d, cmd)
-            loss = world_model_loss(out, tgt, lambda_l2=0.5, cumulative_from=1)
-            opt.zero_grad()
-            loss["loss"].backward()
-            opt.step()
-            first = loss["token_ce"].item() if first is None else first
-        model.eval()
-        with torch.no_grad():
-            out = model(inp, inp_d, cmd)
-        pred = torch.stack([lg.argmax(2) for lg in out.logits], dim=2)  # [B, T, G, h, w]
-    finally:
-        torch.set_num_threads(threads)
+    tokens, disps = moving_blob_sequences()
+    (inp, inp_d), tgt = teacher_forcing_split(tokens, disps)
+    cmd = torch.full((tokens.shape[0],), 2)
+    cfg = WorldModelConfig(
+        codebook_sizes=(3, 18), token_grid=(H, W), embed_dim=24, num_heads=2,
+        num_scales=2, layers_per_scale=(1, 1), history_frames=2, future_frames=5,
+    )  # fmt: skip
+    model = WorldModel(cfg)
+    opt = torch.optim.AdamW(model.parameters(), lr=3e-3)
+    first = None
+    for _ in range(STEPS):
+        out = model(inp, inp_d, cmd)
+        loss = world_model_loss(out, tgt, lambda_l2=0.5, cumulative_from=1)
+        opt.zero_grad()
+        loss["loss"].backward()
+        opt.step()
+        first = loss["token_ce"].item() if first is None else first
+    model.eval()
+    with torch.no_grad():
+        out = model(inp, inp_d, cmd)
+    pred = torch.stack([lg.argmax(2) for lg in out.logits], dim=2)  # [B, T, G, h, w]
     # Positions >= 1 have seen a previous frame and displacement, so the motion is known.
     changed = tgt.tokens[:, 1:] != inp[:, 1:]  # cells copy-paste gets wrong
     assert changed.sum() > 100
