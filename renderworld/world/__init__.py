@@ -10,12 +10,13 @@ from renderworld.world.baselines import (
 )
 from renderworld.world.config import WorldModelConfig
 from renderworld.world.loss import WorldModelTargets, teacher_forcing_split, world_model_loss
-from renderworld.world.model import WorldModel, WorldModelOutput, ego_features
+from renderworld.world.model import WorldModel, WorldModelCache, WorldModelOutput, ego_features
 from renderworld.world.rollout import RolloutOutput, rollout
 
 __all__ = [
     "RolloutOutput",
     "WorldModel",
+    "WorldModelCache",
     "WorldModelConfig",
     "WorldModelOutput",
     "WorldModelTargets",

@@ -38,6 +38,11 @@ class CausalSelfAttention(nn.Module):
     """Multi-head self-attention over the sequence axis with a causal mask.
 
     Input/output [N, T, D]: position ``i`` attends to positions ``<= i`` only.
+
+    With ``cache`` (a dict, initially empty) the keys/values of earlier calls are kept and the
+    ``T`` new positions follow them: new position ``j`` attends to every cached position and
+    to new positions ``<= j``. Feeding a sequence in pieces gives the same result as feeding
+    it whole (the rollout's KV cache; the whole-sequence call is the reference).
     """
 
     def __init__(self, dim: int, num_heads: int):
@@ -46,12 +51,25 @@ class CausalSelfAttention(nn.Module):
         self.qkv = nn.Linear(dim, 3 * dim)
         self.proj = nn.Linear(dim, dim)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, cache: dict | None = None) -> torch.Tensor:
         n, t, d = x.shape
         q, k, v = self.qkv(x).view(n, t, 3, self.num_heads, d // self.num_heads).unbind(2)
-        out = F.scaled_dot_product_attention(
-            q.transpose(1, 2), k.transpose(1, 2), v.transpose(1, 2), is_causal=True
-        )
+        q, k, v = q.transpose(1, 2), k.transpose(1, 2), v.transpose(1, 2)  # [N, heads, T, hd]
+        past = 0
+        if cache is not None:
+            if "k" in cache:
+                past = cache["k"].shape[2]
+                k = torch.cat([cache["k"], k], dim=2)
+                v = torch.cat([cache["v"], v], dim=2)
+            cache["k"], cache["v"] = k, v
+        if past == 0:
+            out = F.scaled_dot_product_attention(q, k, v, is_causal=True)
+        elif t == 1:
+            out = F.scaled_dot_product_attention(q, k, v)  # the newest position sees all
+        else:
+            keys = torch.arange(past + t, device=x.device)
+            mask = keys[None, :] <= (past + torch.arange(t, device=x.device))[:, None]
+            out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
         return self.proj(out.transpose(1, 2).reshape(n, t, d))
 
 
@@ -82,7 +100,7 @@ class SceneBlock(nn.Module):
         num_heads: attention heads.
         mlp_ratio: MLP hidden width / D.
 
-    Shapes: x [B, T, h, w, D] -> [B, T, h, w, D].
+    Shapes: x [B, T, h, w, D] -> [B, T, h, w, D]. ``cache``: see :class:`CausalSelfAttention`.
     """
 
     def __init__(self, dim: int, num_heads: int, mlp_ratio: float):
@@ -95,11 +113,11 @@ class SceneBlock(nn.Module):
         self.norm_m = nn.LayerNorm(dim)
         self.mlp = Mlp(dim, max(1, int(dim * mlp_ratio)))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, cache: dict | None = None) -> torch.Tensor:
         b, t, h, w, d = x.shape
         # Temporal attention: one sequence of length T per (batch, cell).
         y = self.norm_t(x).permute(0, 2, 3, 1, 4).reshape(b * h * w, t, d)
-        y = self.attn(y).view(b, h, w, t, d).permute(0, 3, 1, 2, 4)
+        y = self.attn(y, cache).view(b, h, w, t, d).permute(0, 3, 1, 2, 4)
         x = x + y
         y = self.norm_s(x).reshape(b * t, h, w, d).permute(0, 3, 1, 2)
         x = x + self.spatial(y).permute(0, 2, 3, 1).reshape(b, t, h, w, d)
@@ -109,7 +127,8 @@ class SceneBlock(nn.Module):
 class EgoTemporalBlock(nn.Module):
     """Ego token reads its frame's scene (cross-attention), then causal attention over time.
 
-    Shapes: ego [B, T, D], scene [B, T, h, w, D] -> [B, T, D].
+    Shapes: ego [B, T, D], scene [B, T, h, w, D] -> [B, T, D]. ``cache``: see
+    :class:`CausalSelfAttention`.
     """
 
     def __init__(self, dim: int, num_heads: int, mlp_ratio: float):
@@ -122,12 +141,14 @@ class EgoTemporalBlock(nn.Module):
         self.norm_m = nn.LayerNorm(dim)
         self.mlp = Mlp(dim, max(1, int(dim * mlp_ratio)))
 
-    def forward(self, ego: torch.Tensor, scene: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, ego: torch.Tensor, scene: torch.Tensor, cache: dict | None = None
+    ) -> torch.Tensor:
         b, t, h, w, d = scene.shape
         q = self.norm_q(ego).reshape(b * t, 1, d)
         kv = self.norm_kv(scene).reshape(b * t, h * w, d)
         ego = ego + self.cross(q, kv).view(b, t, d)
-        ego = ego + self.attn(self.norm_t(ego))
+        ego = ego + self.attn(self.norm_t(ego), cache)
         return ego + self.mlp(self.norm_m(ego))
 
 

@@ -21,7 +21,7 @@ motion from frame ``i`` to ``i + 1``), made from frames ``<= i`` only.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
@@ -31,7 +31,13 @@ from renderworld.constants import COMMANDS
 from renderworld.world.blocks import Downsample, EgoTemporalBlock, SceneBlock, UpFuse
 from renderworld.world.config import WorldModelConfig
 
-__all__ = ["NUM_EGO_FEATURES", "WorldModel", "WorldModelOutput", "ego_features"]
+__all__ = [
+    "NUM_EGO_FEATURES",
+    "WorldModel",
+    "WorldModelCache",
+    "WorldModelOutput",
+    "ego_features",
+]
 
 #: dx, dy (normalised), previous-step-present flag, one-hot command.
 NUM_EGO_FEATURES = 3 + len(COMMANDS)
@@ -51,6 +57,21 @@ class WorldModelOutput:
     logits: list[torch.Tensor]
     displacement: torch.Tensor
     displacement_modes: torch.Tensor
+
+
+@dataclass
+class WorldModelCache:
+    """Keys/values of the frames already processed (the rollout's KV cache).
+
+    Attributes:
+        frames: number of leading frames whose features are cached.
+        scene: per scale, per block, the attention cache dict of that :class:`SceneBlock`.
+        ego: the cache dict of the ego temporal attention.
+    """
+
+    frames: int = 0
+    scene: list = field(default_factory=list)
+    ego: dict = field(default_factory=dict)
 
 
 def ego_features(
@@ -152,7 +173,11 @@ class WorldModel(nn.Module):
 
     # ------------------------------------------------------------------ forward
     def forward(
-        self, tokens: torch.Tensor, displacements: torch.Tensor, command: torch.Tensor
+        self,
+        tokens: torch.Tensor,
+        displacements: torch.Tensor,
+        command: torch.Tensor,
+        cache: WorldModelCache | None = None,
     ) -> WorldModelOutput:
         """Teacher-forced next-frame prediction at every position of a window.
 
@@ -162,33 +187,48 @@ class WorldModel(nn.Module):
                 in the current ego frame (see :mod:`renderworld.world.config`).
             command: [B] int64 index into ``COMMANDS``: the current command, used for every
                 frame of the window.
+            cache: None, or a :class:`WorldModelCache` holding frames ``0..F-1`` of these same
+                inputs (empty at first): only frames ``F..T-1`` are computed, the outputs cover
+                only them, and the cache is extended to T frames. Results equal the uncached
+                call's last ``T - F`` positions.
 
         Returns:
-            :class:`WorldModelOutput` with T predictions (index i predicts frame i+1 and d[i]).
+            :class:`WorldModelOutput` with T (or T - F) predictions (index i predicts frame
+            i+1 and d[i]).
         """
         self._check_inputs(tokens, displacements, command)
         cfg = self.config
         b, t = tokens.shape[:2]
-        ego = self.ego_in(
-            ego_features(displacements.to(self.pos_time.dtype), command, t, cfg.max_displacement)
+        start = 0
+        if cache is not None:
+            if not isinstance(cache, WorldModelCache) or not 0 <= cache.frames < t:
+                raise ValueError(
+                    f"cache: expected a WorldModelCache holding fewer than {t} frames, got "
+                    f"{getattr(cache, 'frames', cache)!r}"
+                )
+            start = cache.frames
+            if not cache.scene:
+                cache.scene = [[{} for _ in blocks] for blocks in self.enc]
+        feats = ego_features(
+            displacements.to(self.pos_time.dtype), command, t, cfg.max_displacement
         )
-        ego = ego + self.pos_time[:t]
-        x = sum(emb(tokens[:, :, g]) for g, emb in enumerate(self.code_embed))  # [B,T,h,w,D]
-        x = (
-            x
-            + self.pos_spatial
-            + self.pos_time[:t, None, None]
-            + self.ego_to_scene(ego)[:, :, None, None]
-        )
+        ego = self.ego_in(feats[:, start:]) + self.pos_time[start:t]
+        x = sum(emb(tokens[:, start:, g]) for g, emb in enumerate(self.code_embed))
+        x = x + self.pos_spatial + self.pos_time[start:t, None, None]  # [B, T', h, w, D]
+        x = x + self.ego_to_scene(ego)[:, :, None, None]
+        t = t - start
 
         skips = []
         for s, blocks in enumerate(self.enc):
-            for blk in blocks:
-                x = blk(x)
+            for i, blk in enumerate(blocks):
+                x = blk(x, None if cache is None else cache.scene[s][i])
             if s < cfg.num_scales - 1:
                 skips.append(x)
                 x = self.down[s](x)
-        ego = self.ego_block(ego, x)  # ego reads the coarsest scene map of its own frame
+        # The ego token reads the coarsest scene map of its own frame.
+        ego = self.ego_block(ego, x, None if cache is None else cache.ego)
+        if cache is not None:
+            cache.frames = start + t
         for s in reversed(range(cfg.num_scales - 1)):
             x = self.up[s](x, skips[s])
 
@@ -207,6 +247,7 @@ class WorldModel(nn.Module):
         history_displacements: torch.Tensor,
         command: torch.Tensor,
         steps: int | None = None,
+        use_cache: bool = True,
     ):
         """Autoregressive forecast; see :func:`renderworld.world.rollout.rollout`."""
         from renderworld.world.rollout import rollout
@@ -217,4 +258,5 @@ class WorldModel(nn.Module):
             history_displacements,
             command,
             steps=self.config.future_frames if steps is None else steps,
+            use_cache=use_cache,
         )

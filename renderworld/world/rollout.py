@@ -6,6 +6,12 @@ command is passed unchanged at every step: a future frame's command is never use
 feeds the GT future command during rollout, a leak; FACTS.md). The context keeps at most
 ``config.max_frames`` frames (the training window length); with the default 5 history frames
 and 6 steps it never has to drop a frame.
+
+With ``use_cache`` (default) each step computes only the new frame, reusing the attention
+keys/values of earlier frames (:class:`renderworld.world.model.WorldModelCache`); the
+reference is ``use_cache=False``, which recomputes the whole window every step. Once the
+context would exceed ``max_frames`` the window slides, positions shift, and the rollout falls
+back to recomputing.
 """
 
 from __future__ import annotations
@@ -13,6 +19,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+
+from renderworld.world.model import WorldModelCache
 
 __all__ = ["RolloutOutput", "rollout"]
 
@@ -41,6 +49,7 @@ def rollout(
     history_displacements: torch.Tensor,
     command: torch.Tensor,
     steps: int = 6,
+    use_cache: bool = True,
 ) -> RolloutOutput:
     """Forecast ``steps`` frames autoregressively from a history.
 
@@ -50,6 +59,7 @@ def rollout(
         history_displacements: [B, T-1, 2] metres, current ego frame.
         command: [B] int64 index into ``COMMANDS``, held fixed for every step.
         steps: number of future frames S >= 1.
+        use_cache: reuse earlier frames' attention keys/values (same result, ~T x less work).
 
     Returns:
         :class:`RolloutOutput`.
@@ -67,9 +77,15 @@ def rollout(
         raise ValueError(f"history_tokens: expected at most {max_frames} frames, got {t0}")
     tokens = history_tokens
     disps = history_displacements
+    cache = WorldModelCache() if use_cache else None
     for _ in range(steps):
-        ctx = min(tokens.shape[1], max_frames)
-        out = model(tokens[:, -ctx:], disps[:, disps.shape[1] - (ctx - 1) :], command)
+        if cache is not None and tokens.shape[1] > max_frames:
+            cache = None  # the window slides from here on: recompute
+        if cache is not None:
+            out = model(tokens, disps, command, cache=cache)
+        else:
+            ctx = min(tokens.shape[1], max_frames)
+            out = model(tokens[:, -ctx:], disps[:, disps.shape[1] - (ctx - 1) :], command)
         nxt = torch.stack([lg[:, -1].argmax(dim=1) for lg in out.logits], dim=1)  # [B,G,h,w]
         tokens = torch.cat([tokens, nxt[:, None]], dim=1)
         disps = torch.cat([disps, out.displacement[:, -1:].to(disps.dtype)], dim=1)

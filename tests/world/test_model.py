@@ -130,3 +130,14 @@ def test_gradients_finite_on_hard_inputs():
     for name, p in m.named_parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all(), name
     assert out.displacement.abs().max() <= cfg.max_displacement
+
+
+def test_float32_matches_float64_reference():
+    m32 = tiny_model()
+    m64 = tiny_model().double()
+    tokens, disp, cmd = random_inputs(t=6)
+    a = m32(tokens, disp, cmd)
+    b = m64(tokens, disp.double(), cmd)
+    for x, y in zip(a.logits, b.logits):
+        torch.testing.assert_close(x.double(), y, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(a.displacement.double(), b.displacement, rtol=1e-4, atol=1e-4)

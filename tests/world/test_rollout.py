@@ -3,6 +3,7 @@ import torch
 
 from renderworld.constants import COMMANDS, FREE_ID
 from renderworld.world import WorldModel, rollout
+from renderworld.world.model import WorldModelCache
 from tests.world.test_model import random_inputs, tiny_model
 
 
@@ -26,9 +27,9 @@ def test_rollout_feeds_back_own_predictions_and_holds_command(monkeypatch):
     calls = []
     original = WorldModel.forward
 
-    def spy(self, tok, d, c):
+    def spy(self, tok, d, c, cache=None):
         calls.append((tok.clone(), d.clone(), c.clone()))
-        return original(self, tok, d, c)
+        return original(self, tok, d, c, cache=cache)
 
     monkeypatch.setattr(WorldModel, "forward", spy)
     out = rollout(m, tokens, disp, cmd, steps=6)
@@ -40,6 +41,32 @@ def test_rollout_feeds_back_own_predictions_and_holds_command(monkeypatch):
         if k:
             assert torch.equal(tok[:, 5:], out.tokens[:, :k])  # its own argmax codes
             assert torch.equal(d[:, 4:], out.displacements[:, :k])
+
+
+@pytest.mark.parametrize("steps", [6, 9])  # 9 > window: the cached path falls back
+def test_cached_rollout_matches_recompute_reference(steps):
+    m = tiny_model()
+    tokens, disp, cmd = random_inputs()
+    fast = m.rollout(tokens, disp, cmd, steps=steps, use_cache=True)
+    ref = m.rollout(tokens, disp, cmd, steps=steps, use_cache=False)
+    assert torch.equal(fast.tokens, ref.tokens)
+    torch.testing.assert_close(fast.displacements, ref.displacements, rtol=1e-5, atol=1e-5)
+
+
+def test_forward_in_pieces_with_cache_equals_whole():
+    m = tiny_model()
+    tokens, disp, cmd = random_inputs(t=8)
+    whole = m(tokens, disp, cmd)
+    cache = WorldModelCache()
+    parts = [m(tokens[:, :n], disp[:, : n - 1], cmd, cache=cache) for n in (3, 4, 8)]
+    assert cache.frames == 8
+    for g in range(2):
+        got = torch.cat([p.logits[g] for p in parts], dim=1)
+        torch.testing.assert_close(got, whole.logits[g], rtol=1e-4, atol=1e-5)
+    got = torch.cat([p.displacement for p in parts], dim=1)
+    torch.testing.assert_close(got, whole.displacement, rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="cache: expected a WorldModelCache holding fewer than 8"):
+        m(tokens, disp, cmd, cache=cache)
 
 
 def test_rollout_command_changes_selected_head_only():
