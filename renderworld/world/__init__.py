@@ -9,6 +9,11 @@ from renderworld.world.baselines import (
     warp_constant_velocity_forecast,
 )
 from renderworld.world.config import WorldModelConfig
+from renderworld.world.ego import (
+    command_from_trajectory,
+    displacements_from_poses,
+    frame_poses_from_poses,
+)
 from renderworld.world.loss import WorldModelTargets, teacher_forcing_split, world_model_loss
 from renderworld.world.model import WorldModel, WorldModelCache, WorldModelOutput, ego_features
 from renderworld.world.rollout import RolloutOutput, rollout
@@ -20,9 +25,12 @@ __all__ = [
     "WorldModelConfig",
     "WorldModelOutput",
     "WorldModelTargets",
+    "command_from_trajectory",
     "constant_velocity_trajectory",
     "copy_paste_forecast",
+    "displacements_from_poses",
     "ego_features",
+    "frame_poses_from_poses",
     "rollout",
     "teacher_forcing_split",
     "warp_constant_velocity_forecast",
