@@ -164,11 +164,41 @@ def rasterize_boxes(boxes: np.ndarray, grid: BevGrid = COLLISION_BEV_GRID) -> np
     return out
 
 
-def _check_traj(trajectory) -> np.ndarray:
+def _check_trajs(trajectory) -> tuple[np.ndarray, bool]:
+    """[S, 2] or [N, S, 2] -> ([N, S, 2] float64, was_single)."""
     traj = np.asarray(trajectory, dtype=np.float64)
-    if traj.ndim != 2 or traj.shape[1] != 2 or not np.isfinite(traj).all():
-        raise ValueError(f"trajectory: expected finite [S, 2] metres, got shape {traj.shape}")
-    return traj
+    single = traj.ndim == 2
+    traj = traj[None] if single else traj
+    if traj.ndim != 3 or traj.shape[2] != 2 or not np.isfinite(traj).all():
+        raise ValueError(
+            f"trajectory: expected finite [S, 2] or [N, S, 2] metres, got shape "
+            f"{np.shape(trajectory)}"
+        )
+    return traj, single
+
+
+def _ego_hits(trajs: np.ndarray, hazard: np.ndarray, grid: BevGrid, poses=None):
+    """Ego boxes of [N, S, 2] waypoints against hazard rasters [S, nx, ny].
+
+    ``poses`` [S, 3] (x, y, yaw of raster k's frame in the current frame) or None.
+    Returns (collides [N, S], evaluable [N, S]).
+    """
+    n, s, _ = trajs.shape
+    collides = np.zeros((n, s), dtype=bool)
+    evaluable = np.zeros((n, s), dtype=bool)
+    for j in range(n):
+        headings = trajectory_headings(trajs[j])
+        for k in range(s):
+            (x, y), yaw = trajs[j, k], headings[k]
+            if poses is not None:  # express the ego box in frame k's own ego frame
+                px, py, pyaw = poses[k]
+                c, sn = math.cos(pyaw), math.sin(pyaw)
+                x, y = c * (x - px) + sn * (y - py), -sn * (x - px) + c * (y - py)
+                yaw = yaw - pyaw
+            ix, iy = box_cells(x, y, EGO_LENGTH, EGO_WIDTH, yaw, grid)
+            evaluable[j, k] = ix.size > 0
+            collides[j, k] = evaluable[j, k] and bool(hazard[k][ix, iy].any())
+    return collides, evaluable
 
 
 def collisions_with_boxes(
@@ -177,18 +207,19 @@ def collisions_with_boxes(
     """Does the ego box at each waypoint overlap an agent box of the same future step?
 
     Args:
-        trajectory: [S, 2] metres, current ego frame.
+        trajectory: [S, 2] metres, current ego frame, or [N, S, 2] for N trajectories checked
+            against the same boxes (rasterised once).
         boxes: [S, M, 5] or [S, M, 7] agent boxes at each future step, current ego frame.
         box_valid: [S, M] bool (False = padding row) or None (all valid; then no NaN allowed).
         grid: the BEV raster.
 
     Returns:
-        (collides [S] bool, evaluable [S] bool); ``evaluable`` is False where the ego box
+        (collides, evaluable), bool [S] (or [N, S]); ``evaluable`` is False where the ego box
         covers no grid cell.
     """
-    traj = _check_traj(trajectory)
+    trajs, single = _check_trajs(trajectory)
     b = np.asarray(boxes, dtype=np.float64)
-    s = len(traj)
+    s = trajs.shape[1]
     if b.ndim != 3 or b.shape[0] != s or b.shape[2] not in (5, 7):
         raise ValueError(f"boxes: expected [S={s}, M, 5 or 7], got {b.shape}")
     if box_valid is None:
@@ -203,15 +234,9 @@ def collisions_with_boxes(
         raise ValueError(
             "boxes: expected finite values in valid rows (mark padding with box_valid)"
         )
-    headings = trajectory_headings(traj)
-    collides = np.zeros(s, dtype=bool)
-    evaluable = np.zeros(s, dtype=bool)
-    for k in range(s):
-        ix, iy = box_cells(traj[k, 0], traj[k, 1], EGO_LENGTH, EGO_WIDTH, headings[k], grid)
-        evaluable[k] = ix.size > 0
-        if evaluable[k]:
-            collides[k] = rasterize_boxes(b[k][valid[k]], grid)[ix, iy].any()
-    return collides, evaluable
+    hazard = np.stack([rasterize_boxes(b[k][valid[k]], grid) for k in range(s)])
+    collides, evaluable = _ego_hits(trajs, hazard, grid)
+    return (collides[0], evaluable[0]) if single else (collides, evaluable)
 
 
 def collisions_with_occupancy(
@@ -220,18 +245,18 @@ def collisions_with_occupancy(
     """Does the ego box at each waypoint cover an object voxel (classes 1..10) in BEV?
 
     Args:
-        trajectory: [S, 2] metres, current ego frame.
+        trajectory: [S, 2] metres, current ego frame, or [N, S, 2].
         occupancy: [S, X, Y, Z] integer labels of the future frames t+1..t+S on ``grid``.
         grid: the occupancy's voxel grid (square BEV voxels).
         frame_poses: [S, 3] (x, y, yaw) of each occupancy frame's ego origin in the current ego
             frame, or None when the occupancy is already expressed in the current ego frame.
 
     Returns:
-        (collides [S] bool, evaluable [S] bool).
+        (collides, evaluable), bool [S] (or [N, S]).
     """
-    traj = _check_traj(trajectory)
+    trajs, single = _check_trajs(trajectory)
     occ = np.asarray(occupancy)
-    s = len(traj)
+    s = trajs.shape[1]
     if occ.ndim != 4 or occ.shape[0] != s or tuple(occ.shape[1:]) != tuple(grid.shape):
         raise ValueError(
             f"occupancy: expected [S={s}, {', '.join(map(str, grid.shape))}], got {occ.shape}"
@@ -241,19 +266,6 @@ def collisions_with_occupancy(
         poses = np.asarray(frame_poses, dtype=np.float64)
         if poses.shape != (s, 3) or not np.isfinite(poses).all():
             raise ValueError(f"frame_poses: expected finite [S={s}, 3], got {poses.shape}")
-    bev_grid = BevGrid.from_grid_spec(grid)
     objects = np.isin(occ, OBJECT_CLASS_IDS).any(axis=-1)  # [S, X, Y]
-    headings = trajectory_headings(traj)
-    collides = np.zeros(s, dtype=bool)
-    evaluable = np.zeros(s, dtype=bool)
-    for k in range(s):
-        (x, y), yaw = traj[k], headings[k]
-        if poses is not None:  # express the ego box in frame k's own ego frame
-            px, py, pyaw = poses[k]
-            c, sn = math.cos(pyaw), math.sin(pyaw)
-            x, y = c * (x - px) + sn * (y - py), -sn * (x - px) + c * (y - py)
-            yaw = yaw - pyaw
-        ix, iy = box_cells(x, y, EGO_LENGTH, EGO_WIDTH, yaw, bev_grid)
-        evaluable[k] = ix.size > 0
-        collides[k] = evaluable[k] and bool(objects[k][ix, iy].any())
-    return collides, evaluable
+    collides, evaluable = _ego_hits(trajs, objects, BevGrid.from_grid_spec(grid), poses)
+    return (collides[0], evaluable[0]) if single else (collides, evaluable)

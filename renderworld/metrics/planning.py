@@ -169,9 +169,10 @@ class PlanningMetric:
             self.sources_seen.add("boxes")
             for i in range(b):
                 bv = None if agent_valid is None else agent_valid[i]
-                pc = collisions_with_boxes(p[i], agent_boxes[i], bv, self.box_grid)
-                gc = collisions_with_boxes(g[i], agent_boxes[i], bv, self.box_grid)
-                self._count("boxes", pc, gc, v[i])
+                hit, ok = collisions_with_boxes(
+                    np.stack([p[i], g[i]]), agent_boxes[i], bv, self.box_grid
+                )
+                self._count("boxes", (hit[0], ok[0]), (hit[1], ok[1]), v[i])
         if occupancy is not None:
             occ = np.asarray(_to_numpy(occupancy, "occupancy"))
             if occ.ndim != 5 or occ.shape[:2] != (b, self.steps):
@@ -181,9 +182,10 @@ class PlanningMetric:
             self.sources_seen.add("occupancy")
             for i in range(b):
                 poses = None if occupancy_poses is None else occupancy_poses[i]
-                pc = collisions_with_occupancy(p[i], occ[i], self.occupancy_grid, poses)
-                gc = collisions_with_occupancy(g[i], occ[i], self.occupancy_grid, poses)
-                self._count("occupancy", pc, gc, v[i])
+                hit, ok = collisions_with_occupancy(
+                    np.stack([p[i], g[i]]), occ[i], self.occupancy_grid, poses
+                )
+                self._count("occupancy", (hit[0], ok[0]), (hit[1], ok[1]), v[i])
 
     def _count(self, src: str, pred_c, gt_c, valid: np.ndarray) -> None:
         (p_hit, p_eval), (g_hit, _) = pred_c, gt_c

@@ -142,3 +142,23 @@ def test_occupancy_collision_objects_only_and_frame_poses():
     assert not ok[0] and not hit[0]
     with pytest.raises(ValueError, match="occupancy: expected"):
         collisions_with_occupancy(traj, occ[:, :10], SMALL)
+
+
+def test_several_trajectories_equal_one_by_one():
+    rng = np.random.default_rng(2)
+    boxes = np.column_stack(
+        [rng.uniform(-6, 6, (4 * 3,)), rng.uniform(-6, 6, 12), rng.uniform(1, 5, 12),
+         rng.uniform(0.5, 2, 12), rng.uniform(-3, 3, 12)]
+    ).reshape(4, 3, 5)  # fmt: skip
+    trajs = np.cumsum(rng.uniform(-2, 3, (5, 4, 2)), axis=1)
+    hit, ok = collisions_with_boxes(trajs, boxes)
+    assert hit.shape == (5, 4) and hit.any() and not hit.all()
+    for j in range(5):
+        h1, o1 = collisions_with_boxes(trajs[j], boxes)
+        np.testing.assert_array_equal(hit[j], h1)
+        np.testing.assert_array_equal(ok[j], o1)
+    occ = np.full((4, *SMALL.shape), FREE_ID, dtype=np.uint8)
+    occ[:, 15:25, 15:25, 0] = 4
+    hit, _ = collisions_with_occupancy(trajs, occ, SMALL)
+    for j in range(5):
+        np.testing.assert_array_equal(hit[j], collisions_with_occupancy(trajs[j], occ, SMALL)[0])
