@@ -266,6 +266,12 @@ def collisions_with_occupancy(
         poses = np.asarray(frame_poses, dtype=np.float64)
         if poses.shape != (s, 3) or not np.isfinite(poses).all():
             raise ValueError(f"frame_poses: expected finite [S={s}, 3], got {poses.shape}")
-    objects = np.isin(occ, OBJECT_CLASS_IDS).any(axis=-1)  # [S, X, Y]
+    if not np.issubdtype(occ.dtype, np.integer) or (
+        occ.size and (occ.min() < 0 or occ.max() > 255)
+    ):
+        raise ValueError(f"occupancy: expected integer class ids in [0, 255], got {occ.dtype}")
+    is_object = np.zeros(256, dtype=bool)
+    is_object[list(OBJECT_CLASS_IDS)] = True
+    objects = is_object[occ].any(axis=-1)  # [S, X, Y]
     collides, evaluable = _ego_hits(trajs, objects, BevGrid.from_grid_spec(grid), poses)
     return (collides[0], evaluable[0]) if single else (collides, evaluable)
