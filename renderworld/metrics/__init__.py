@@ -1,0 +1,46 @@
+"""Metrics (pure functions and accumulators, numpy/torch inputs; DESIGN.md §4).
+
+Every accumulator states its protocol in ``compute()["protocol"]`` and in ``format_table()``.
+"""
+
+from renderworld.metrics.collision import (
+    COLLISION_BEV_GRID,
+    BevGrid,
+    box_cells,
+    collisions_with_boxes,
+    collisions_with_occupancy,
+    rasterize_boxes,
+    trajectory_headings,
+)
+from renderworld.metrics.forecast import FORECAST_HORIZONS_S, ForecastMetric, horizon_steps
+from renderworld.metrics.occupancy import (
+    OCCUPANCY_PROTOCOL,
+    OccupancyMetric,
+    confusion_matrix,
+    geometry_iou,
+    iou_per_class,
+    mean_iou,
+)
+from renderworld.metrics.planning import PLANNING_PROTOCOL, PlanningMetric, l2_errors
+
+__all__ = [
+    "COLLISION_BEV_GRID",
+    "FORECAST_HORIZONS_S",
+    "OCCUPANCY_PROTOCOL",
+    "PLANNING_PROTOCOL",
+    "BevGrid",
+    "ForecastMetric",
+    "OccupancyMetric",
+    "PlanningMetric",
+    "box_cells",
+    "collisions_with_boxes",
+    "collisions_with_occupancy",
+    "confusion_matrix",
+    "geometry_iou",
+    "horizon_steps",
+    "iou_per_class",
+    "l2_errors",
+    "mean_iou",
+    "rasterize_boxes",
+    "trajectory_headings",
+]

@@ -1,0 +1,211 @@
+"""Planner bundles: one file holding the tokenizer and the world model, loadable safely.
+
+Format (``schema_version`` 1), a plain dict saved with ``torch.save`` and read with
+``torch.load(weights_only=True)`` (no pickled code)::
+
+    {
+      "schema_version": 1,
+      "stage": "planner_bundle",
+      "tokenizer":   {"kind": str, "config": dict, "state_dict": {name: Tensor}},
+      "world_model": {"config": dict (WorldModelConfig.to_dict()), "state_dict": {...}},
+    }
+
+The tokenizer is rebuilt through a registry (``register_tokenizer``), never by importing a
+class named in the file. Writes are atomic (temp file in the same folder, fsync, rename);
+loads are strict (unknown/missing keys and wrong schema raise).
+
+The training infrastructure's checkpoints (``"model"``, ``"config"`` YAML, ``"stage"``,
+``"schema_version"``) come later; a converter from two such checkpoints to a bundle is then a
+few lines around :func:`save_planner_bundle`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from renderworld.planning.api import Planner
+from renderworld.world.config import WorldModelConfig
+from renderworld.world.model import WorldModel
+
+__all__ = [
+    "BUNDLE_SCHEMA_VERSION",
+    "BUNDLE_STAGE",
+    "load_planner",
+    "register_tokenizer",
+    "registered_tokenizers",
+    "save_planner_bundle",
+]
+
+BUNDLE_SCHEMA_VERSION = 1
+BUNDLE_STAGE = "planner_bundle"
+
+
+@dataclasses.dataclass(frozen=True)
+class _Entry:
+    cls: type
+    from_config: Callable[[dict], nn.Module]
+    to_config: Callable[[nn.Module], dict]
+
+
+_REGISTRY: dict[str, _Entry] = {}
+
+
+def _plain(value):
+    """Tuples -> lists recursively, so the config survives a weights-only load."""
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
+def _default_to_config(module: nn.Module) -> dict:
+    for attr in ("config", "cfg"):
+        cfg = getattr(module, attr, None)
+        if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type):
+            return _plain(dataclasses.asdict(cfg))
+        if isinstance(cfg, dict):
+            return _plain(dict(cfg))
+    raise ValueError(
+        f"tokenizer: {type(module).__name__} has no dataclass/dict .config or .cfg; register it "
+        "with to_config="
+    )
+
+
+def register_tokenizer(
+    kind: str,
+    cls: type,
+    from_config: Callable[[dict], nn.Module] | None = None,
+    to_config: Callable[[nn.Module], dict] | None = None,
+) -> None:
+    """Make a tokenizer class storable in bundles.
+
+    Args:
+        kind: the name written into bundles.
+        cls: the ``nn.Module`` subclass (instances of exactly this type are saved as ``kind``).
+        from_config: builds a module from the stored config dict (default
+            ``cls.from_config(d)`` if it exists, else ``cls(**d)``). The AM-VAE would be
+            registered with ``from_config=renderworld.tokenizer.build_tokenizer``.
+        to_config: returns a plain dict (default: ``asdict`` of ``.config`` / ``.cfg``).
+    """
+    if not isinstance(kind, str) or not kind:
+        raise ValueError(f"kind: expected a non-empty str, got {kind!r}")
+    if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
+        raise TypeError(f"cls: expected an nn.Module subclass, got {cls!r}")
+    if from_config is None:
+        from_config = getattr(cls, "from_config", None) or (lambda d: cls(**d))
+    _REGISTRY[kind] = _Entry(cls, from_config, to_config or _default_to_config)
+
+
+def registered_tokenizers() -> tuple[str, ...]:
+    """Kinds known to :func:`load_planner`."""
+    return tuple(sorted(_REGISTRY))
+
+
+def _kind_of(tokenizer) -> str:
+    for kind, entry in _REGISTRY.items():
+        if type(tokenizer) is entry.cls:
+            return kind
+    raise ValueError(
+        f"tokenizer: type {type(tokenizer).__name__} is not registered; call "
+        f"register_tokenizer(kind, cls) first (known: {registered_tokenizers()})"
+    )
+
+
+def save_planner_bundle(
+    path: str | os.PathLike, tokenizer: nn.Module, world_model: WorldModel
+) -> Path:
+    """Write a planner bundle atomically.
+
+    Args:
+        path: destination file (its folder must exist).
+        tokenizer: a registered tokenizer module.
+        world_model: the world model.
+
+    Returns:
+        The path written.
+    """
+    if not isinstance(world_model, WorldModel):
+        raise TypeError(f"world_model: expected WorldModel, got {type(world_model).__name__}")
+    kind = _kind_of(tokenizer)
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise ValueError(f"path: folder {path.parent} does not exist")
+    bundle = {
+        "schema_version": BUNDLE_SCHEMA_VERSION,
+        "stage": BUNDLE_STAGE,
+        "tokenizer": {
+            "kind": kind,
+            "config": _REGISTRY[kind].to_config(tokenizer),
+            "state_dict": {k: v.detach().cpu() for k, v in tokenizer.state_dict().items()},
+        },
+        "world_model": {
+            "config": world_model.config.to_dict(),
+            "state_dict": {k: v.detach().cpu() for k, v in world_model.state_dict().items()},
+        },
+    }
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(bundle, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _require_keys(d, keys: set[str], where: str) -> None:
+    if not isinstance(d, dict):
+        raise ValueError(f"{where}: expected a dict, got {type(d).__name__}")
+    if set(d) != keys:
+        raise ValueError(f"{where}: expected keys {sorted(keys)}, got {sorted(map(str, d))}")
+
+
+def load_planner(ckpt_path: str | os.PathLike, device: str | torch.device = "cpu") -> Planner:
+    """Load a bundle written by :func:`save_planner_bundle` into a :class:`Planner`.
+
+    Loads with ``torch.load(weights_only=True)`` and ``load_state_dict(strict=True)``.
+
+    Raises:
+        ValueError: missing file, wrong stage/schema, unknown keys, unregistered tokenizer kind,
+            or state dicts that do not match the configs.
+    """
+    path = Path(ckpt_path)
+    if not path.is_file():
+        raise ValueError(f"ckpt_path: no such file {path}")
+    data = torch.load(path, map_location="cpu", weights_only=True)
+    _require_keys(data, {"schema_version", "stage", "tokenizer", "world_model"}, str(path))
+    if data["stage"] != BUNDLE_STAGE:
+        raise ValueError(f"{path}: expected stage {BUNDLE_STAGE!r}, got {data['stage']!r}")
+    if data["schema_version"] != BUNDLE_SCHEMA_VERSION:
+        raise ValueError(
+            f"{path}: expected schema_version {BUNDLE_SCHEMA_VERSION}, "
+            f"got {data['schema_version']!r}"
+        )
+    tok, wm = data["tokenizer"], data["world_model"]
+    _require_keys(tok, {"kind", "config", "state_dict"}, f"{path}: tokenizer")
+    _require_keys(wm, {"config", "state_dict"}, f"{path}: world_model")
+    if tok["kind"] not in _REGISTRY:
+        raise ValueError(
+            f"{path}: tokenizer kind {tok['kind']!r} is not registered "
+            f"(known: {registered_tokenizers()}); call register_tokenizer first"
+        )
+    tokenizer = _REGISTRY[tok["kind"]].from_config(tok["config"])
+    world_model = WorldModel(WorldModelConfig.from_dict(wm["config"]))
+    try:
+        tokenizer.load_state_dict(tok["state_dict"], strict=True)
+        world_model.load_state_dict(wm["state_dict"], strict=True)
+    except RuntimeError as err:
+        raise ValueError(f"{path}: state dict does not match its config: {err}") from err
+    return Planner(tokenizer, world_model, device=device)

@@ -1,0 +1,187 @@
+"""Building blocks of the world model: causal temporal attention per token cell.
+
+Scene features are carried channels-last as ``[B, T, h, w, D]``. Every spatial operation
+(depth-wise conv, down/up-sampling) acts on one frame at a time and every temporal operation
+is causally masked, so the features of frame ``i`` never depend on frames ``> i``.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+__all__ = [
+    "CausalSelfAttention",
+    "CrossAttention",
+    "Downsample",
+    "EgoTemporalBlock",
+    "Mlp",
+    "SceneBlock",
+    "UpFuse",
+]
+
+
+class Mlp(nn.Module):
+    """Two-layer GELU MLP on the last dimension."""
+
+    def __init__(self, dim: int, hidden: int):
+        super().__init__()
+        self.fc1 = nn.Linear(dim, hidden)
+        self.fc2 = nn.Linear(hidden, dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.fc2(F.gelu(self.fc1(x)))
+
+
+class CausalSelfAttention(nn.Module):
+    """Multi-head self-attention over the sequence axis with a causal mask.
+
+    Input/output [N, T, D]: position ``i`` attends to positions ``<= i`` only.
+
+    With ``cache`` (a dict, initially empty) the keys/values of earlier calls are kept and the
+    ``T`` new positions follow them: new position ``j`` attends to every cached position and
+    to new positions ``<= j``. Feeding a sequence in pieces gives the same result as feeding
+    it whole (the rollout's KV cache; the whole-sequence call is the reference).
+    """
+
+    def __init__(self, dim: int, num_heads: int):
+        super().__init__()
+        self.num_heads = num_heads
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.proj = nn.Linear(dim, dim)
+
+    def forward(self, x: torch.Tensor, cache: dict | None = None) -> torch.Tensor:
+        n, t, d = x.shape
+        q, k, v = self.qkv(x).view(n, t, 3, self.num_heads, d // self.num_heads).unbind(2)
+        q, k, v = q.transpose(1, 2), k.transpose(1, 2), v.transpose(1, 2)  # [N, heads, T, hd]
+        past = 0
+        if cache is not None:
+            if "k" in cache:
+                past = cache["k"].shape[2]
+                k = torch.cat([cache["k"], k], dim=2)
+                v = torch.cat([cache["v"], v], dim=2)
+            cache["k"], cache["v"] = k, v
+        if past == 0:
+            out = F.scaled_dot_product_attention(q, k, v, is_causal=True)
+        elif t == 1:
+            out = F.scaled_dot_product_attention(q, k, v)  # the newest position sees all
+        else:
+            keys = torch.arange(past + t, device=x.device)
+            mask = keys[None, :] <= (past + torch.arange(t, device=x.device))[:, None]
+            out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
+        return self.proj(out.transpose(1, 2).reshape(n, t, d))
+
+
+class CrossAttention(nn.Module):
+    """Queries [N, Q, D] attend to keys/values [N, S, D] (no mask)."""
+
+    def __init__(self, dim: int, num_heads: int):
+        super().__init__()
+        self.num_heads = num_heads
+        self.q = nn.Linear(dim, dim)
+        self.kv = nn.Linear(dim, 2 * dim)
+        self.proj = nn.Linear(dim, dim)
+
+    def forward(self, query: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+        n, nq, d = query.shape
+        h, hd = self.num_heads, d // self.num_heads
+        q = self.q(query).view(n, nq, h, hd).transpose(1, 2)
+        k, v = self.kv(context).view(n, context.shape[1], 2, h, hd).unbind(2)
+        out = F.scaled_dot_product_attention(q, k.transpose(1, 2), v.transpose(1, 2))
+        return self.proj(out.transpose(1, 2).reshape(n, nq, d))
+
+
+class SceneBlock(nn.Module):
+    """Causal temporal attention per cell + per-frame spatial mixing + MLP (pre-norm).
+
+    Args:
+        dim: D.
+        num_heads: attention heads.
+        mlp_ratio: MLP hidden width / D.
+
+    Shapes: x [B, T, h, w, D] -> [B, T, h, w, D]. ``cache``: see :class:`CausalSelfAttention`.
+    """
+
+    def __init__(self, dim: int, num_heads: int, mlp_ratio: float):
+        super().__init__()
+        self.norm_t = nn.LayerNorm(dim)
+        self.attn = CausalSelfAttention(dim, num_heads)
+        self.norm_s = nn.LayerNorm(dim)
+        # Depth-wise 3x3 conv inside one frame: lets content move between neighbouring cells.
+        self.spatial = nn.Conv2d(dim, dim, 3, padding=1, groups=dim)
+        self.norm_m = nn.LayerNorm(dim)
+        self.mlp = Mlp(dim, max(1, int(dim * mlp_ratio)))
+
+    def forward(self, x: torch.Tensor, cache: dict | None = None) -> torch.Tensor:
+        b, t, h, w, d = x.shape
+        # Temporal attention: one sequence of length T per (batch, cell).
+        y = self.norm_t(x).permute(0, 2, 3, 1, 4).reshape(b * h * w, t, d)
+        y = self.attn(y, cache).view(b, h, w, t, d).permute(0, 3, 1, 2, 4)
+        x = x + y
+        y = self.norm_s(x).reshape(b * t, h, w, d).permute(0, 3, 1, 2)
+        x = x + self.spatial(y).permute(0, 2, 3, 1).reshape(b, t, h, w, d)
+        return x + self.mlp(self.norm_m(x))
+
+
+class EgoTemporalBlock(nn.Module):
+    """Ego token reads its frame's scene (cross-attention), then causal attention over time.
+
+    Shapes: ego [B, T, D], scene [B, T, h, w, D] -> [B, T, D]. ``cache``: see
+    :class:`CausalSelfAttention`.
+    """
+
+    def __init__(self, dim: int, num_heads: int, mlp_ratio: float):
+        super().__init__()
+        self.norm_q = nn.LayerNorm(dim)
+        self.norm_kv = nn.LayerNorm(dim)
+        self.cross = CrossAttention(dim, num_heads)
+        self.norm_t = nn.LayerNorm(dim)
+        self.attn = CausalSelfAttention(dim, num_heads)
+        self.norm_m = nn.LayerNorm(dim)
+        self.mlp = Mlp(dim, max(1, int(dim * mlp_ratio)))
+
+    def forward(
+        self, ego: torch.Tensor, scene: torch.Tensor, cache: dict | None = None
+    ) -> torch.Tensor:
+        b, t, h, w, d = scene.shape
+        q = self.norm_q(ego).reshape(b * t, 1, d)
+        kv = self.norm_kv(scene).reshape(b * t, h * w, d)
+        ego = ego + self.cross(q, kv).view(b, t, d)
+        ego = ego + self.attn(self.norm_t(ego), cache)
+        return ego + self.mlp(self.norm_m(ego))
+
+
+class Downsample(nn.Module):
+    """Per-frame stride-2 3x3 conv: [B, T, h, w, D] -> [B, T, ceil(h/2), ceil(w/2), D]."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.conv = nn.Conv2d(dim, dim, 3, stride=2, padding=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        b, t, h, w, d = x.shape
+        y = self.conv(x.reshape(b * t, h, w, d).permute(0, 3, 1, 2))
+        return y.permute(0, 2, 3, 1).reshape(b, t, y.shape[-2], y.shape[-1], d)
+
+
+class UpFuse(nn.Module):
+    """Per-frame nearest up-sampling to the skip's size, concat with the skip, 3x3 conv fuse.
+
+    Shapes: coarse [B, T, h', w', D], skip [B, T, h, w, D] -> [B, T, h, w, D].
+    """
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.fuse = nn.Conv2d(2 * dim, dim, 3, padding=1)
+        self.norm = nn.LayerNorm(dim)
+        self.mlp = Mlp(dim, 2 * dim)
+
+    def forward(self, coarse: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        b, t, h, w, d = skip.shape
+        c = coarse.reshape(b * t, *coarse.shape[2:]).permute(0, 3, 1, 2)
+        c = F.interpolate(c, size=(h, w), mode="nearest")
+        s = skip.reshape(b * t, h, w, d).permute(0, 3, 1, 2)
+        x = self.fuse(torch.cat([c, s], dim=1)).permute(0, 2, 3, 1).reshape(b, t, h, w, d)
+        x = skip + x
+        return x + self.mlp(self.norm(x))
