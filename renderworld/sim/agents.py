@@ -56,7 +56,7 @@ class Path:
         return Path(self.xy + d[:, None] * normal)
 
     def project(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Arc length [N] of the nearest path sample and the distance [N] to it, for points [N, 2]."""
+        """Arc length [N] of the nearest path sample and distance [N] to it, for points [N, 2]."""
         xy = np.atleast_2d(np.asarray(xy, dtype=np.float64))
         d2 = ((xy[:, None, :] - self.xy[None, :, :]) ** 2).sum(-1)
         i = d2.argmin(1)

@@ -153,12 +153,20 @@ class Voxeliser:
         sem[ii[cols][:, None], jj[cols][:, None], ks[None]] = cls
 
     # ------------------------------------------------------------------ masks
-    def mask_lidar(self, range_image: np.ndarray) -> np.ndarray:
-        """[X, Y, Z] uint8: voxels reached by returned rays (range image [32, A] m, -1 = none)."""
+    def mask_lidar(self, range_image: np.ndarray, points_ego: np.ndarray | None = None):
+        """[X, Y, Z] uint8: voxels reached by returned LiDAR rays.
+
+        Args:
+            range_image: [32, A] true range (metres) of each kept return, -1 where none.
+            points_ego: [N, 3] returned points in the ego frame; their voxels are marked too.
+        """
         rng = range_image.reshape(-1)[self._l_flat]
         seen = (rng > 0) & (self._l_r <= rng + self._margin)
         out = np.zeros(self.grid.spec.num_voxels, dtype=np.uint8)
         out[self._l_idx[seen]] = 1
+        if points_ego is not None and len(points_ego):
+            idx, inside = self.grid.points_to_index(points_ego)
+            out[self.grid.flat_index(idx[inside])] = 1
         return out.reshape(self.grid.shape)
 
     def mask_camera(self, depths: list[np.ndarray], mask_lidar: np.ndarray) -> np.ndarray:

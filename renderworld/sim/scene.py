@@ -310,6 +310,9 @@ class SimConfig:
         if num_scenes is not None:
             n = _check_int("num_scenes", num_scenes, 1)
             scenes = [dataclasses.replace(scenes[i % len(scenes)]) for i in range(n)]
+            names = list(d.get("scene_names") or cls().scene_names)
+            names += [f"scene-{9000 + i:04d}" for i in range(len(names), n)]
+            d["scene_names"] = names[:n]
         cfg = cls(scenes=scenes, sensors=SensorSpec(**sensors), **d)
         cfg.validate()
         return cfg

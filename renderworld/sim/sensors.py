@@ -106,15 +106,17 @@ class SensorRig:
 
 
 def camera_time_offsets(rig: SensorRig) -> dict[str, int]:
-    """Microseconds from the LiDAR keyframe time to each camera's exposure.
+    """Microseconds from the LiDAR keyframe timestamp to each camera's exposure.
 
-    The LiDAR spins once per 50 ms (20 Hz, clockwise seen from above); each camera fires as the
-    sweep crosses its optical axis, so offsets lie within about ±25 ms.
+    The LiDAR spins once per 50 ms (20 Hz, clockwise seen from above) starting, at its
+    keyframe timestamp, from the gap between CAM_FRONT_LEFT and CAM_BACK_LEFT (ego yaw 80°);
+    each camera fires as the sweep crosses its optical axis, so offsets lie in (0, 50) ms.
     """
     out = {}
+    start = np.deg2rad(80.0)
     for ch in CAMERA_NAMES:
         axis = rig.sensor_to_ego[ch][:3, 2]  # camera z in ego
         yaw = float(np.arctan2(axis[1], axis[0]))
-        frac = np.mod(-yaw, 2 * np.pi) / (2 * np.pi)  # 0 at the front, clockwise
-        out[ch] = int(round((frac - 0.5) * 50_000)) if frac > 0.5 else int(round(frac * 50_000))
+        frac = np.mod(start - yaw, 2 * np.pi) / (2 * np.pi)
+        out[ch] = int(round(frac * 50_000))
     return out

@@ -225,7 +225,8 @@ def _simulate_scene(writer, world, i, config, rig, voxeliser, mask_size, report,
                 timestamp=int(tsc), is_key_frame=True))  # fmt: skip
         with report.stage("occupancy"):
             sem = voxeliser.semantics(world, t, poses[LIDAR_NAME])
-            m_lidar = voxeliser.mask_lidar(range_image)
+            p_ego = xform(rig.sensor_to_ego[LIDAR_NAME], pts[:, :3].astype(np.float64))
+            m_lidar = voxeliser.mask_lidar(range_image, p_ego)
             depths = [camera_depth(caster, rig, ch, t, poses[LIDAR_NAME], *mask_size)
                       for ch in CAMERA_NAMES]  # fmt: skip
             m_cam = voxeliser.mask_camera(depths, m_lidar)
