@@ -171,10 +171,14 @@ def render_camera(world, caster: Raycaster, rig: SensorRig, channel: str, t: flo
                 * np.clip((hits.normal * -rel / dist[:, None]).sum(1), 0, 1)
                 / (1 + (dist / 12.0) ** 2)
             )
-            for lamp in world.lamps[np.linalg.norm(world.lamps[:, :2] - origin[:2], axis=1) < 80]:
-                d = lamp - p
-                r = np.linalg.norm(d, axis=1) + 1e-6
-                light += 0.9 * np.clip((hits.normal * d).sum(1) / r, 0, 1) / (1 + (r / 6.0) ** 2)
+            near = np.linalg.norm(world.lamps[:, :2] - origin[:2], axis=1)
+            lit = hit & (hits.t < 60.0)  # lamps light only nearby surfaces
+            p32, n32 = p[lit].astype(np.float32), hits.normal[lit]
+            for lamp in world.lamps[np.argsort(near)[:6]].astype(np.float32):
+                d = lamp - p32
+                r2 = (d * d).sum(1) + 1e-6
+                cos = np.clip((n32 * d).sum(1), 0, None) / np.sqrt(r2)
+                light[lit] += 0.9 * cos / (1 + r2 / 36.0)
             sky = np.array([0.02, 0.03, 0.07])
     else:
         light = 0.45 + 0.6 * np.clip((hits.normal * sun).sum(1), 0, 1)
