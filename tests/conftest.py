@@ -28,7 +28,13 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 FIXTURE_CACHE = REPO_ROOT / ".cache" / "fixtures"
-_HASHED = ("renderworld/sim", "renderworld/geometry", "renderworld/constants.py", "configs/sim")
+_HASHED = (
+    "renderworld/sim",
+    "renderworld/geometry",
+    "renderworld/constants.py",
+    "configs/sim",
+    "tools/make_fixtures.py",
+)
 
 
 def fixture_hash(preset: str, **overrides) -> str:
