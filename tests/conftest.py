@@ -76,3 +76,17 @@ def tiny_dataset() -> Path:
 def mini_dataset() -> Path:
     """Root of the cached ``mini`` simulated dataset (slow to build the first time)."""
     return make_fixture("mini")
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _isolated_table_cache(tmp_path_factory):
+    """Tests never write the reader's table cache into the user's ~/.cache."""
+    import os
+
+    old = os.environ.get("RENDERWORLD_CACHE_DIR")
+    os.environ["RENDERWORLD_CACHE_DIR"] = str(tmp_path_factory.mktemp("table-cache"))
+    yield
+    if old is None:
+        os.environ.pop("RENDERWORLD_CACHE_DIR", None)
+    else:
+        os.environ["RENDERWORLD_CACHE_DIR"] = old

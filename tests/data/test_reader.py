@@ -78,7 +78,7 @@ def test_table_cache_round_trip_and_invalidation(tmp_path):
     build_tiny_dataset(tmp_path / "c")
     cold = NuScenesReader(tmp_path / "c", VERSION).load_all()
     warm = NuScenesReader(tmp_path / "c", VERSION)
-    assert warm._cache.get("sample_data") is not None
+    assert warm._cache.get("sample_data") is not None  # written by the cold load
     for name in ("sample", "sample_data", "calibrated_sensor", "sample_annotation"):
         a, b = cold.table(name), warm.table(name)
         assert list(a.index) == list(b.index)
