@@ -1,0 +1,202 @@
+"""LiDAR -> label map: hand-computed projection, pixel rule, z-buffer, the devkit chain."""
+
+import json
+
+import numpy as np
+import pytest
+import transforms3d
+
+from data_converters import CameraView, PointSource, label_maps, project_to_label_map
+from data_converters.labels import point_sources
+from data_converters.sample_infos import camera_views, scene_frames
+from renderworld.constants import CAMERA_NAMES, LIDARSEG_TO_OCC3D
+from renderworld.data import IGNORE_LABEL, NuScenesReader
+from renderworld.data.labels2d import zbuffer_nearest
+from tests.converter.datasets_for_tests import VERSION
+
+K = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]])
+EYE = np.eye(4)
+
+
+def project(points, labels, size=(80, 100), label_size=(40, 50), l2c=EYE, min_depth=1.0):
+    pts = np.asarray(points, dtype=np.float64)
+    return project_to_label_map(pts, np.asarray(labels, np.uint8), l2c, K, size, label_size,
+                                min_depth)  # fmt: skip
+
+
+def test_hand_computed_point_and_pixel_rule():
+    # (1, 0.5, 10) -> u = 100 * 0.1 + 50 = 60, v = 100 * 0.05 + 40 = 45; at scale 0.5:
+    # pixel (floor(30), floor(22.5)) = (30, 22).
+    lab = project([[1.0, 0.5, 10.0]], [4])
+    assert (lab.u.tolist(), lab.v.tolist()) == ([30], [22])
+    assert lab.depth.tolist() == [10.0] and lab.label.tolist() == [4]
+    assert (lab.height, lab.width) == (40, 50)
+    assert (lab.u.dtype, lab.v.dtype, lab.depth.dtype, lab.label.dtype) == (
+        np.uint16, np.uint16, np.float32, np.uint8)  # fmt: skip
+    # u just below 60 -> 59.99.. * 0.5 floors to 29; full resolution keeps the floor too.
+    lab = project([[0.9999, 0.5, 10.0]], [4])
+    assert lab.u.tolist() == [29]
+    full = project([[0.9999, 0.5, 10.0]], [4], label_size=(80, 100))
+    assert (full.u.tolist(), full.v.tolist()) == ([59], [45])
+
+
+def test_hand_computed_with_transform():
+    # LiDAR frame rotated 90 deg about the camera's y axis and shifted: camera = R p + t.
+    l2c = np.eye(4)
+    l2c[:3, :3] = transforms3d.euler.euler2mat(0, np.pi / 2, 0)  # x_lidar -> -z? check below
+    l2c[:3, 3] = [0.5, 0.0, 2.0]
+    p = np.array([[-8.0, 0.0, 0.0]])
+    cam = l2c[:3, :3] @ p[0] + l2c[:3, 3]
+    u = 100 * cam[0] / cam[2] + 50
+    v = 100 * cam[1] / cam[2] + 40
+    assert cam[2] > 1
+    lab = project(p, [7], label_size=(80, 100), l2c=l2c)
+    assert (lab.u.tolist(), lab.v.tolist()) == ([int(np.floor(u))], [int(np.floor(v))])
+    assert lab.depth[0] == pytest.approx(cam[2], rel=1e-6)
+
+
+def test_behind_outside_and_near_points_are_dropped():
+    pts = [
+        [0.0, 0.0, -5.0],  # behind the camera
+        [0.0, 0.0, 0.5],  # in front but closer than 1 m
+        [0.0, 0.0, 1.0],  # exactly 1 m: the devkit keeps depth > 1 only
+        [6.0, 0.0, 10.0],  # u = 110 >= W = 100
+        [-5.1, 0.0, 10.0],  # u = -1 < 0
+        [0.0, 4.1, 10.0],  # v = 81 >= H = 80
+        [4.99, 3.99, 10.0],  # u = 99.9, v = 79.9: inside, last pixel
+    ]
+    lab = project(pts, [1, 2, 3, 4, 5, 6, 9], label_size=(80, 100))
+    assert lab.label.tolist() == [9]
+    assert (lab.u.tolist(), lab.v.tolist()) == ([99], [79])
+
+
+def test_zbuffer_keeps_nearest_on_one_pixel_ray():
+    ray = np.array([0.305, -0.195, 1.0])  # pixel centre (80.5, 20.5)
+    pts = [ray * 20, ray * 5, ray * 12, [0.0, 0.0, 30.0]]  # three on one ray, farthest first
+    lab = project(pts, [15, 4, 16, 11], label_size=(80, 100))
+    assert len(lab) == 2
+    on_ray = lab.label != 11
+    assert lab.label[on_ray].tolist() == [4]
+    assert lab.depth[on_ray][0] == pytest.approx(5.0)
+
+
+def zbuffer_reference(pixel, depth):
+    """Loop reference of the vectorised z-buffer (nearest per pixel, earliest on ties)."""
+    best = {}
+    for i, (p, d) in enumerate(zip(pixel.tolist(), depth.tolist())):
+        if p not in best or d < depth[best[p]]:
+            best[p] = i
+    return np.array([best[p] for p in sorted(best)], dtype=np.int64)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_zbuffer_matches_loop_reference(seed):
+    rng = np.random.default_rng(seed)
+    pixel = rng.integers(0, 30, 400)
+    depth = rng.integers(1, 6, 400).astype(np.float64)  # many exact ties
+    np.testing.assert_array_equal(zbuffer_nearest(pixel, depth), zbuffer_reference(pixel, depth))
+    assert zbuffer_nearest(np.zeros(0, int), np.zeros(0)).shape == (0,)
+
+
+def test_zbuffer_validates():
+    with pytest.raises(ValueError, match="pixel/depth: expected two"):
+        zbuffer_nearest(np.zeros(3, int), np.zeros(2))
+
+
+def test_sources_are_motion_compensated_through_their_own_ego_pose():
+    # A static world point seen by two sweeps taken from different ego poses must land on the
+    # same pixel: each sweep is mapped lidar -> ego -> global with its own pose.
+    world = np.array([30.0, 2.0, 1.0])
+    cam_to_ego = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1.0]])
+    cam = CameraView(K, cam_to_ego, np.eye(4), (80, 100), (80, 100))
+    sources = []
+    for x, yaw, label in ((0.0, 0.0, 4), (3.0, 0.1, 7)):
+        ego = np.eye(4)
+        ego[:3, :3] = transforms3d.euler.euler2mat(0, 0, yaw)
+        ego[:3, 3] = [x, 0.0, 0.0]
+        local = np.linalg.inv(ego) @ np.r_[world, 1.0]
+        sources.append(PointSource(local[None, :3], np.array([label], np.uint8), np.eye(4), ego))
+    single = [label_maps([s], [cam])[0] for s in sources]
+    assert (single[0].u[0], single[0].v[0]) == (single[1].u[0], single[1].v[0])
+    both = label_maps(sources, [cam])[0]
+    assert len(both) == 1 and both.depth[0] == pytest.approx(30.0)
+    # Move the second sweep's point 1 m farther along the same camera ray: the first must win.
+    far = sources[1].ego_to_global @ np.r_[sources[1].points[0], 1.0]
+    far[:3] = world + (world - cam_to_ego[:3, 3]) / np.linalg.norm(world) * 1.0
+    local = np.linalg.inv(sources[1].ego_to_global) @ far
+    sources[1] = PointSource(local[None, :3], sources[1].labels, np.eye(4), sources[1].ego_to_global)
+    assert label_maps(sources, [cam])[0].label.tolist() == [4]
+    assert label_maps(sources[::-1], [cam])[0].label.tolist() == [4]
+
+
+def quat_to_mat(q):
+    """Rotation from a [w, x, y, z] quaternion, written out (independent of the package)."""
+    w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])  # fmt: skip
+
+
+def test_label_maps_follow_the_devkit_chain_on_a_moving_dataset(moving_raw):
+    """Independent recomputation from the raw JSON records, step by step as the devkit does."""
+    root = moving_raw
+    tables = {n: {r["token"]: r for r in json.loads((root / VERSION / f"{n}.json").read_text())}
+              for n in ("sample_data", "calibrated_sensor", "ego_pose")}  # fmt: skip
+    reader = NuScenesReader(root, VERSION)
+    frames = scene_frames(reader, "scene-0061", 0)
+    _, views = camera_views(reader, frames.tokens[1], lambda hw: hw)
+    labels = label_maps(point_sources(reader, frames, 1), views)
+    lidar_sd = tables["sample_data"][frames.lidar_tokens[1]]
+    pts = np.fromfile(root / lidar_sd["filename"], "<f4").reshape(-1, 5)[:, :3].astype(float)
+    seg = np.fromfile(root / f"lidarseg/{VERSION}/{lidar_sd['token']}_lidarseg.bin", np.uint8)
+    n_checked = 0
+    for c, channel in enumerate(CAMERA_NAMES):
+        cam_sd = next(r for r in tables["sample_data"].values()
+                      if r["sample_token"] == frames.tokens[1] and r["is_key_frame"]
+                      and r["filename"].startswith(f"samples/{channel}/"))  # fmt: skip
+        assert cam_sd["timestamp"] != lidar_sd["timestamp"]
+        p = pts.copy()
+        for rec, inverse in (
+            (tables["calibrated_sensor"][lidar_sd["calibrated_sensor_token"]], False),
+            (tables["ego_pose"][lidar_sd["ego_pose_token"]], False),
+            (tables["ego_pose"][cam_sd["ego_pose_token"]], True),
+            (tables["calibrated_sensor"][cam_sd["calibrated_sensor_token"]], True),
+        ):
+            rot, t = quat_to_mat(rec["rotation"]), np.asarray(rec["translation"])
+            p = (p - t) @ rot if inverse else p @ rot.T + t
+        kmat = np.asarray(tables["calibrated_sensor"][cam_sd["calibrated_sensor_token"]]
+                          ["camera_intrinsic"])  # fmt: skip
+        uvw = p @ kmat.T
+        u, v, d = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2], p[:, 2]
+        keep = (d > 1) & (u >= 0) & (u < cam_sd["width"]) & (v >= 0) & (v < cam_sd["height"])
+        expect = {}
+        for i in np.flatnonzero(keep):
+            key = (int(np.floor(u[i])), int(np.floor(v[i])))
+            if key not in expect or d[i] < expect[key][0]:
+                expect[key] = (d[i], LIDARSEG_TO_OCC3D[int(seg[i])])
+        got = {(int(a), int(b)): (float(x), int(y)) for a, b, x, y in
+               zip(labels[c].u, labels[c].v, labels[c].depth, labels[c].label)}  # fmt: skip
+        assert got.keys() == expect.keys(), channel
+        for key, (depth, label) in expect.items():
+            assert got[key][0] == pytest.approx(depth, rel=1e-6)
+            assert got[key][1] == label
+        n_checked += len(expect)
+    assert n_checked > 300  # the points really land in the cameras
+
+
+def test_sweeps_add_depth_only_points(moving_raw):
+    reader = NuScenesReader(moving_raw, VERSION)
+    frames = scene_frames(reader, "scene-0061", 0)
+    key = point_sources(reader, frames, 1)
+    with_sweeps = point_sources(reader, frames, 1, sweeps=2)
+    assert len(key) == 1 and len(with_sweeps) == 5  # 2 before and 2 after the keyframe
+    assert all((s.labels == IGNORE_LABEL).all() for s in with_sweeps[1:])
+    ts = {reader.timestamp(t) for t in reader.table("sample_data").index}
+    poses = {tuple(s.ego_to_global[:3, 3]) for s in with_sweeps}
+    assert len(poses) == 5 and len(ts) > 5  # every sweep brings its own ego pose
+    multi = point_sources(reader, frames, 1, multiframe=1)
+    assert len(multi) == 3
+    static = np.isin(multi[1].labels, [11, 12, 13, 14, 15, 16])
+    assert static.all() and 0 < len(multi[1].labels) < len(key[0].labels)
