@@ -50,8 +50,9 @@ def test_labels_match_devkit_map_pointcloud_to_image(tmp_path):
         expect = {}
         for key, d in zip(zip(np.floor(u).astype(int), np.floor(v).astype(int)), depth):
             expect[key] = min(d, expect.get(key, np.inf))
-        got = {(int(a), int(b)): float(d) for a, b, d in zip(labels[c].u, labels[c].v,
-                                                             labels[c].depth)}  # fmt: skip
+        got = {
+            (int(a), int(b)): float(d) for a, b, d in zip(labels[c].u, labels[c].v, labels[c].depth)
+        }
         # The devkit drops a 1-pixel border (1 < u < W - 1); compare the pixels inside it.
         inner = {k for k in got if 2 <= k[0] <= w - 3 and 2 <= k[1] <= h - 3}
         assert inner == {k for k in expect if 2 <= k[0] <= w - 3 and 2 <= k[1] <= h - 3}, cam

@@ -20,8 +20,9 @@ EYE = np.eye(4)
 
 def project(points, labels, size=(80, 100), label_size=(40, 50), l2c=EYE, min_depth=1.0):
     pts = np.asarray(points, dtype=np.float64)
-    return project_to_label_map(pts, np.asarray(labels, np.uint8), l2c, K, size, label_size,
-                                min_depth)  # fmt: skip
+    return project_to_label_map(
+        pts, np.asarray(labels, np.uint8), l2c, K, size, label_size, min_depth
+    )
 
 
 def test_hand_computed_point_and_pixel_rule():
@@ -32,7 +33,11 @@ def test_hand_computed_point_and_pixel_rule():
     assert lab.depth.tolist() == [10.0] and lab.label.tolist() == [4]
     assert (lab.height, lab.width) == (40, 50)
     assert (lab.u.dtype, lab.v.dtype, lab.depth.dtype, lab.label.dtype) == (
-        np.uint16, np.uint16, np.float32, np.uint8)  # fmt: skip
+        np.uint16,
+        np.uint16,
+        np.float32,
+        np.uint8,
+    )
     # u just below 60 -> 59.99.. * 0.5 floors to 29; full resolution keeps the floor too.
     lab = project([[0.9999, 0.5, 10.0]], [4])
     assert lab.u.tolist() == [29]
@@ -124,7 +129,9 @@ def test_sources_are_motion_compensated_through_their_own_ego_pose():
     far = sources[1].ego_to_global @ np.r_[sources[1].points[0], 1.0]
     far[:3] = world + (world - cam_to_ego[:3, 3]) / np.linalg.norm(world) * 1.0
     local = np.linalg.inv(sources[1].ego_to_global) @ far
-    sources[1] = PointSource(local[None, :3], sources[1].labels, np.eye(4), sources[1].ego_to_global)
+    sources[1] = PointSource(
+        local[None, :3], sources[1].labels, np.eye(4), sources[1].ego_to_global
+    )
     assert label_maps(sources, [cam])[0].label.tolist() == [4]
     assert label_maps(sources[::-1], [cam])[0].label.tolist() == [4]
 
@@ -132,18 +139,22 @@ def test_sources_are_motion_compensated_through_their_own_ego_pose():
 def quat_to_mat(q):
     """Rotation from a [w, x, y, z] quaternion, written out (independent of the package)."""
     w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])  # fmt: skip
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def test_label_maps_follow_the_devkit_chain_on_a_moving_dataset(moving_raw):
     """Independent recomputation from the raw JSON records, step by step as the devkit does."""
     root = moving_raw
-    tables = {n: {r["token"]: r for r in json.loads((root / VERSION / f"{n}.json").read_text())}
-              for n in ("sample_data", "calibrated_sensor", "ego_pose")}  # fmt: skip
+    tables = {
+        n: {r["token"]: r for r in json.loads((root / VERSION / f"{n}.json").read_text())}
+        for n in ("sample_data", "calibrated_sensor", "ego_pose")
+    }
     reader = NuScenesReader(root, VERSION)
     frames = scene_frames(reader, "scene-0061", 0)
     _, views = camera_views(reader, frames.tokens[1], lambda hw: hw)
@@ -153,9 +164,13 @@ def test_label_maps_follow_the_devkit_chain_on_a_moving_dataset(moving_raw):
     seg = np.fromfile(root / f"lidarseg/{VERSION}/{lidar_sd['token']}_lidarseg.bin", np.uint8)
     n_checked = 0
     for c, channel in enumerate(CAMERA_NAMES):
-        cam_sd = next(r for r in tables["sample_data"].values()
-                      if r["sample_token"] == frames.tokens[1] and r["is_key_frame"]
-                      and r["filename"].startswith(f"samples/{channel}/"))  # fmt: skip
+        cam_sd = next(
+            r
+            for r in tables["sample_data"].values()
+            if r["sample_token"] == frames.tokens[1]
+            and r["is_key_frame"]
+            and r["filename"].startswith(f"samples/{channel}/")
+        )
         assert cam_sd["timestamp"] != lidar_sd["timestamp"]
         p = pts.copy()
         for rec, inverse in (
@@ -166,8 +181,9 @@ def test_label_maps_follow_the_devkit_chain_on_a_moving_dataset(moving_raw):
         ):
             rot, t = quat_to_mat(rec["rotation"]), np.asarray(rec["translation"])
             p = (p - t) @ rot if inverse else p @ rot.T + t
-        kmat = np.asarray(tables["calibrated_sensor"][cam_sd["calibrated_sensor_token"]]
-                          ["camera_intrinsic"])  # fmt: skip
+        kmat = np.asarray(
+            tables["calibrated_sensor"][cam_sd["calibrated_sensor_token"]]["camera_intrinsic"]
+        )
         uvw = p @ kmat.T
         u, v, d = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2], p[:, 2]
         keep = (d > 1) & (u >= 0) & (u < cam_sd["width"]) & (v >= 0) & (v < cam_sd["height"])
@@ -176,8 +192,10 @@ def test_label_maps_follow_the_devkit_chain_on_a_moving_dataset(moving_raw):
             key = (int(np.floor(u[i])), int(np.floor(v[i])))
             if key not in expect or d[i] < expect[key][0]:
                 expect[key] = (d[i], LIDARSEG_TO_OCC3D[int(seg[i])])
-        got = {(int(a), int(b)): (float(x), int(y)) for a, b, x, y in
-               zip(labels[c].u, labels[c].v, labels[c].depth, labels[c].label)}  # fmt: skip
+        got = {
+            (int(a), int(b)): (float(x), int(y))
+            for a, b, x, y in zip(labels[c].u, labels[c].v, labels[c].depth, labels[c].label)
+        }
         assert got.keys() == expect.keys(), channel
         for key, (depth, label) in expect.items():
             assert got[key][0] == pytest.approx(depth, rel=1e-6)

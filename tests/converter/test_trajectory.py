@@ -40,8 +40,9 @@ def test_left_turn_future_matches_ground_truth_and_commands_left(left_turn):
         n_valid = min(6, 7 - i)
         assert mask.tolist() == [True] * n_valid + [False] * (6 - n_valid)
         for k in range(n_valid):
-            np.testing.assert_allclose(fut[k], gt_in_frame("left", 0.5 * i, 0.5 * (i + k + 1)),
-                                       atol=0.01)  # fmt: skip
+            np.testing.assert_allclose(
+                fut[k], gt_in_frame("left", 0.5 * i, 0.5 * (i + k + 1)), atol=0.01
+            )
         assert (fut[n_valid:] == 0).all()
     # A 20 m radius turn at 10 m/s: 3 s ahead is far to the left.
     assert infos["command"].tolist()[:6] == ["left"] * 6
@@ -57,8 +58,9 @@ def test_history_is_per_step_displacement_with_mask(left_turn):
             k = i - 3 + j  # frame k expressed in frame k-1's ego frame
             assert mask[j] == (k - 1 >= 0)
             if mask[j]:
-                np.testing.assert_allclose(hist[j], gt_in_frame("left", 0.5 * (k - 1), 0.5 * k),
-                                           atol=0.01)  # fmt: skip
+                np.testing.assert_allclose(
+                    hist[j], gt_in_frame("left", 0.5 * (k - 1), 0.5 * k), atol=0.01
+                )
             else:
                 assert (hist[j] == 0).all()
 
@@ -104,8 +106,17 @@ def test_boxes_in_ego_frame_hand_case():
     # Ego at (10, 5) heading +90 deg (facing +y). A box 3 m ahead of it, heading +x globally:
     # in the ego frame it sits at (3, 0) with yaw -90 deg.
     ego = pose_matrix([10.0, 5.0, 0.0], [np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)])
-    boxes = pd.DataFrame({"center_x": [10.0], "center_y": [8.0], "center_z": [1.0],
-                          "length": [4.5], "width": [1.9], "yaw": [0.0], "occ3d_class": [4]})  # fmt: skip
+    boxes = pd.DataFrame(
+        {
+            "center_x": [10.0],
+            "center_y": [8.0],
+            "center_z": [1.0],
+            "length": [4.5],
+            "width": [1.9],
+            "yaw": [0.0],
+            "occ3d_class": [4],
+        }
+    )
     out = boxes_in_ego_frame(boxes, ego)
     np.testing.assert_allclose(out, [[3.0, 0.0, 4.5, 1.9, -np.pi / 2, 4.0]], atol=1e-12)
     assert boxes_in_ego_frame(boxes.iloc[:0], ego).shape == (0, 6)

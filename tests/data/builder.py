@@ -234,7 +234,8 @@ def build_tiny_dataset(
                         else _tok("sw", i * sweeps + j + 1),
                     })  # fmt: skip
             anns.append({
-                "token": _tok("ann", i), "sample_token": s_tok, "instance_token": _tok("ins", s_idx),
+                "token": _tok("ann", i), "sample_token": s_tok,
+                "instance_token": _tok("ins", s_idx),
                 "attribute_tokens": [attribute[0]["token"]], "visibility_token": "1",
                 "translation": [110.0 + 5 * i, 52.0, 1.0], "size": [1.9, 4.5, 1.6],
                 "rotation": [np.cos(0.25), 0.0, 0.0, np.sin(0.25)], "num_lidar_pts": 10,
@@ -246,7 +247,8 @@ def build_tiny_dataset(
             save_occ3d_labels(root / "gts" / scene_name / s_tok / "labels.npz", sem,
                               np.ones_like(sem), np.ones_like(sem))  # fmt: skip
         instance.append({"token": _tok("ins", s_idx), "category_token": categories[17]["token"],
-                         "nbr_annotations": num_samples, "first_annotation_token": _tok("ann", first),
+                         "nbr_annotations": num_samples,
+                         "first_annotation_token": _tok("ann", first),
                          "last_annotation_token": _tok("ann", last)})  # fmt: skip
         scene.append({"token": _tok("scn", s_idx), "name": scene_name, "description": "tiny",
                       "log_token": log[0]["token"], "nbr_samples": num_samples,
