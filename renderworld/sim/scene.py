@@ -1,0 +1,359 @@
+"""Scene descriptions: plain dataclasses, validated before anything is simulated or written.
+
+A :class:`SimConfig` lists :class:`SceneSpec` s (one per scene: road kind, ego behaviour, how
+many objects of each sort, which effects run) plus sensor settings. Configs come from Hydra
+(``configs/sim``) as plain dicts via :meth:`SimConfig.from_dict`; this module never imports
+Hydra. Positions are metres in the scene's local frame (x east, y north, z up); the ego starts
+near the origin heading +x.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from renderworld.constants import LIDARSEG_CLASSES, MINI_TRAIN_SCENES, MINI_VAL_SCENES
+
+__all__ = [
+    "ROAD_KINDS",
+    "BEHAVIOURS",
+    "WEATHERS",
+    "OBJECT_CATEGORIES",
+    "EffectsSpec",
+    "ObjectSpec",
+    "SceneSpec",
+    "SensorSpec",
+    "SimConfig",
+]
+
+ROAD_KINDS: tuple[str, ...] = ("straight", "curve", "intersection", "t_junction")
+BEHAVIOURS: tuple[str, ...] = (
+    "cruise",
+    "turn_left",
+    "turn_right",
+    "stop_and_go",
+    "lane_change_left",
+    "lane_change_right",
+    "parked",
+)
+WEATHERS: tuple[str, ...] = ("clear", "rain", "fog")
+
+#: lidarseg categories the simulator can build, with a default annotation size
+#: (width, length, height) in metres. Vegetation objects are trees.
+OBJECT_CATEGORIES: dict[str, tuple[float, float, float]] = {
+    "vehicle.car": (1.9, 4.6, 1.6),
+    "vehicle.truck": (2.5, 7.5, 3.2),
+    "vehicle.bus.rigid": (2.8, 11.0, 3.3),
+    "vehicle.trailer": (2.5, 9.0, 3.8),
+    "vehicle.construction": (2.8, 6.0, 3.0),
+    "vehicle.motorcycle": (0.8, 2.1, 1.5),
+    "vehicle.bicycle": (0.6, 1.7, 1.7),
+    "human.pedestrian.adult": (0.6, 0.6, 1.75),
+    "movable_object.barrier": (2.5, 0.5, 1.0),
+    "movable_object.trafficcone": (0.4, 0.4, 0.7),
+    "static.manmade": (12.0, 12.0, 10.0),
+    "static.vegetation": (4.0, 4.0, 6.0),
+}
+
+
+def _err(name: str, expected: str, got: Any) -> ValueError:
+    return ValueError(f"{name}: expected {expected}, got {got!r}")
+
+
+def _check_int(name: str, value: Any, lo: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < lo:
+        raise _err(name, f"an integer >= {lo}", value)
+    return value
+
+
+@dataclass
+class EffectsSpec:
+    """Which effects a scene runs. An effect that is off costs nothing.
+
+    Attributes:
+        ego_motion: the ego drives its route (off: it stays at the start pose).
+        agent_motion: pedestrians and vehicles move (off: every agent is static geometry).
+        lidar_noise: LiDAR range noise (sigma ``lidar_range_sigma`` m) and random dropout.
+        camera_noise: camera sensor noise and per-frame exposure variation.
+        weather: ``"clear"``, ``"rain"`` or ``"fog"`` (attenuation in LiDAR and cameras).
+        night: night lighting (dim ambient, ego headlights, street lamps).
+    """
+
+    ego_motion: bool = True
+    agent_motion: bool = True
+    lidar_noise: bool = True
+    camera_noise: bool = True
+    weather: str = "clear"
+    night: bool = False
+
+    def validate(self, where: str) -> None:
+        for f in ("ego_motion", "agent_motion", "lidar_noise", "camera_noise", "night"):
+            if not isinstance(getattr(self, f), bool):
+                raise _err(f"{where}.effects.{f}", "a bool", getattr(self, f))
+        if self.weather not in WEATHERS:
+            raise _err(f"{where}.effects.weather", f"one of {WEATHERS}", self.weather)
+
+
+@dataclass
+class ObjectSpec:
+    """An explicitly placed static object (added to the procedural ones).
+
+    Attributes:
+        category: a lidarseg class name from :data:`OBJECT_CATEGORIES`.
+        x: centre x, metres, scene frame.
+        y: centre y, metres, scene frame.
+        yaw: heading of the object's length axis, radians.
+        size: (width, length, height) metres; ``None`` takes the category default.
+    """
+
+    category: str
+    x: float
+    y: float
+    yaw: float = 0.0
+    size: tuple[float, float, float] | None = None
+
+    def validate(self, where: str) -> None:
+        if self.category not in LIDARSEG_CLASSES:
+            raise ValueError(
+                f"{where}.category: unknown class {self.category!r}; expected a nuScenes lidarseg "
+                f"class such as {sorted(OBJECT_CATEGORIES)}"
+            )
+        if self.category not in OBJECT_CATEGORIES:
+            raise ValueError(
+                f"{where}.category: class {self.category!r} is not simulated; expected one of "
+                f"{sorted(OBJECT_CATEGORIES)}"
+            )
+        if self.size is not None and (len(self.size) != 3 or min(self.size) <= 0):
+            raise _err(f"{where}.size", "3 positive sizes (width, length, height)", self.size)
+
+    @property
+    def dims(self) -> tuple[float, float, float]:
+        """(width, length, height) metres."""
+        return tuple(self.size) if self.size is not None else OBJECT_CATEGORIES[self.category]
+
+
+@dataclass
+class SceneSpec:
+    """One scene: a road-kind preset, the ego behaviour, object counts and effects.
+
+    Attributes:
+        kind: road layout, one of :data:`ROAD_KINDS`.
+        behaviour: ego behaviour, one of :data:`BEHAVIOURS` (turns need a junction).
+        speed: ego cruise speed, m/s.
+        lanes: lanes per direction (1 or 2; lane changes need 2).
+        num_parked: parked vehicles along the kerbs.
+        num_moving: moving vehicles (cars, trucks, buses, motorcycles, bicycles).
+        num_pedestrians: pedestrians walking on sidewalks or crossing.
+        num_props: barriers and traffic cones.
+        num_buildings: buildings per road side (approximate; gaps are random).
+        num_trees: trees and hedges per road side (approximate).
+        effects: which effects run.
+        objects: extra explicitly placed static objects.
+        route: explicit ego waypoints ``[[x, y], ...]`` (scene frame) replacing the preset route.
+    """
+
+    kind: str = "straight"
+    behaviour: str = "cruise"
+    speed: float = 8.0
+    lanes: int = 2
+    num_parked: int = 6
+    num_moving: int = 5
+    num_pedestrians: int = 6
+    num_props: int = 4
+    num_buildings: int = 6
+    num_trees: int = 6
+    effects: EffectsSpec = field(default_factory=EffectsSpec)
+    objects: list[ObjectSpec] = field(default_factory=list)
+    route: list[list[float]] | None = None
+
+    def validate(self, where: str = "scene") -> None:
+        """Raise ValueError naming the field when the description is not simulable."""
+        if self.kind not in ROAD_KINDS:
+            raise _err(f"{where}.kind", f"one of {ROAD_KINDS}", self.kind)
+        if self.behaviour not in BEHAVIOURS:
+            raise _err(f"{where}.behaviour", f"one of {BEHAVIOURS}", self.behaviour)
+        if self.behaviour in ("turn_left", "turn_right") and self.kind not in (
+            "intersection",
+            "t_junction",
+        ):
+            raise _err(f"{where}.behaviour", "a turn only on intersection/t_junction", self.kind)
+        if self.kind == "t_junction" and self.behaviour not in ("turn_left", "turn_right"):
+            raise _err(
+                f"{where}.behaviour", "turn_left or turn_right at a t_junction", self.behaviour
+            )
+        if self.lanes not in (1, 2):
+            raise _err(f"{where}.lanes", "1 or 2", self.lanes)
+        if self.behaviour.startswith("lane_change") and self.lanes != 2:
+            raise _err(f"{where}.lanes", "2 for a lane change", self.lanes)
+        if not (0.0 < float(self.speed) <= 20.0):
+            raise _err(f"{where}.speed", "a speed in (0, 20] m/s", self.speed)
+        for f in ("num_parked", "num_moving", "num_pedestrians", "num_props"):
+            _check_int(f"{where}.{f}", getattr(self, f), 0)
+        for f in ("num_buildings", "num_trees"):
+            _check_int(f"{where}.{f}", getattr(self, f), 0)
+        self.effects.validate(where)
+        for i, obj in enumerate(self.objects):
+            obj.validate(f"{where}.objects[{i}]")
+        if self.route is not None:
+            if len(self.route) < 2 or any(len(p) != 2 for p in self.route):
+                raise _err(f"{where}.route", "at least 2 waypoints [x, y]", self.route)
+
+
+@dataclass
+class SensorSpec:
+    """Sensor settings shared by all scenes.
+
+    Attributes:
+        image_width: written image width, pixels (intrinsics scale by width / 1600).
+        image_height: written image height, pixels (intrinsics scale by height / 900).
+        lidar_azimuth_steps: LiDAR rays per beam per revolution (1084 ~ HDL-32E at 20 Hz).
+        lidar_range: maximum LiDAR range, metres.
+        lidar_range_sigma: range noise (metres) when ``lidar_noise`` is on.
+        lidar_dropout: fraction of returns dropped when ``lidar_noise`` is on.
+        jpeg_quality: JPEG quality (1..95).
+        mask_camera_scale: resolution of the depth maps used for ``mask_camera``, as a fraction
+            of the written image size.
+    """
+
+    image_width: int = 400
+    image_height: int = 225
+    lidar_azimuth_steps: int = 1084
+    lidar_range: float = 70.0
+    lidar_range_sigma: float = 0.02
+    lidar_dropout: float = 0.05
+    jpeg_quality: int = 90
+    mask_camera_scale: float = 0.5
+
+    def validate(self) -> None:
+        for f in ("image_width", "image_height"):
+            v = getattr(self, f)
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise _err(f"sensors.{f}", "a positive integer image size", v)
+        _check_int("sensors.lidar_azimuth_steps", self.lidar_azimuth_steps, 16)
+        if not (1 <= self.jpeg_quality <= 95):
+            raise _err("sensors.jpeg_quality", "1..95", self.jpeg_quality)
+        if not (0.0 < self.mask_camera_scale <= 1.0):
+            raise _err("sensors.mask_camera_scale", "a fraction in (0, 1]", self.mask_camera_scale)
+        if not (0.0 <= self.lidar_dropout < 1.0):
+            raise _err("sensors.lidar_dropout", "a fraction in [0, 1)", self.lidar_dropout)
+        if not (self.lidar_range > 0 and self.lidar_range_sigma >= 0):
+            raise _err("sensors.lidar_range", "positive range and sigma >= 0", self.lidar_range)
+
+
+@dataclass
+class SimConfig:
+    """Everything a simulation run needs.
+
+    Attributes:
+        seed: master seed; same seed and config give byte-identical datasets.
+        version: dataset version folder name.
+        keyframes: keyframes per scene (2 Hz).
+        scenes: scene descriptions; scene i gets ``scene_names[i]``.
+        scene_names: names, default the official mini split (8 train + 2 val).
+        sensors: sensor settings.
+    """
+
+    seed: int = 0
+    version: str = "v1.0-mini"
+    keyframes: int = 20
+    scenes: list[SceneSpec] = field(default_factory=lambda: [SceneSpec()])
+    scene_names: list[str] = field(
+        default_factory=lambda: list(MINI_TRAIN_SCENES) + list(MINI_VAL_SCENES)
+    )
+    sensors: SensorSpec = field(default_factory=SensorSpec)
+
+    def validate(self) -> None:
+        """Validate every field; raises ValueError naming the offending one."""
+        _check_int("seed", self.seed, 0)
+        _check_int("keyframes", self.keyframes, 1)
+        if not self.scenes:
+            raise _err("scenes", "at least one scene", self.scenes)
+        if len(self.scene_names) < len(self.scenes):
+            raise _err("scene_names", f">= {len(self.scenes)} names", self.scene_names)
+        names = self.scene_names[: len(self.scenes)]
+        if len(set(names)) != len(names):
+            raise _err("scene_names", "unique names", names)
+        if not self.version or "/" in self.version:
+            raise _err("version", "a folder name like 'v1.0-mini'", self.version)
+        self.sensors.validate()
+        for i, s in enumerate(self.scenes):
+            s.validate(f"scenes[{i}]")
+
+    @property
+    def named_scenes(self) -> list[tuple[str, SceneSpec]]:
+        """(name, spec) pairs in order."""
+        return list(zip(self.scene_names, self.scenes))
+
+    def to_dict(self) -> dict:
+        """Plain-dict form (JSON/YAML-serialisable)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SimConfig:
+        """Build from a plain dict (e.g. ``OmegaConf.to_container(cfg)``); unknown keys raise.
+
+        ``num_scenes`` (optional) repeats/truncates ``scenes`` to that many; ``image_size``
+        (optional, ``"WxH"`` or ``[W, H]``) sets the sensor image size.
+        """
+        if not isinstance(d, dict):
+            raise TypeError(f"config: expected a dict, got {type(d).__name__}")
+        d = dict(d)
+        num_scenes = d.pop("num_scenes", None)
+        image_size = d.pop("image_size", None)
+        _check_keys("config", d, cls)
+        sensors = dict(d.pop("sensors", None) or {})
+        _check_keys("sensors", sensors, SensorSpec)
+        if image_size is not None:
+            sensors["image_width"], sensors["image_height"] = _parse_size(image_size)
+        scenes = [_scene_from_dict(s, i) for i, s in enumerate(d.pop("scenes", None) or [{}])]
+        if num_scenes is not None:
+            n = _check_int("num_scenes", num_scenes, 1)
+            scenes = [dataclasses.replace(scenes[i % len(scenes)]) for i in range(n)]
+            names = list(d.get("scene_names") or cls().scene_names)
+            names += [f"scene-{9000 + i:04d}" for i in range(len(names), n)]
+            d["scene_names"] = names[:n]
+        cfg = cls(scenes=scenes, sensors=SensorSpec(**sensors), **d)
+        cfg.validate()
+        return cfg
+
+
+def _check_keys(where: str, d: dict, klass) -> None:
+    known = {f.name for f in dataclasses.fields(klass)}
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise ValueError(f"{where}: unknown keys {unknown}; expected some of {sorted(known)}")
+
+
+def _parse_size(size: Any) -> tuple[int, int]:
+    if isinstance(size, str):
+        parts = size.lower().split("x")
+    else:
+        parts = list(size)
+    try:
+        w, h = (int(p) for p in parts)
+    except (TypeError, ValueError):
+        raise _err("image_size", "'WxH' or [W, H] integers", size) from None
+    if w <= 0 or h <= 0:
+        raise _err("image_size", "a positive image size 'WxH'", size)
+    return w, h
+
+
+def _scene_from_dict(d: dict, i: int) -> SceneSpec:
+    if not isinstance(d, dict):
+        raise TypeError(f"scenes[{i}]: expected a dict, got {type(d).__name__}")
+    d = dict(d)
+    _check_keys(f"scenes[{i}]", d, SceneSpec)
+    eff = dict(d.pop("effects", None) or {})
+    _check_keys(f"scenes[{i}].effects", eff, EffectsSpec)
+    objs = []
+    for j, o in enumerate(d.pop("objects", None) or []):
+        o = dict(o)
+        _check_keys(f"scenes[{i}].objects[{j}]", o, ObjectSpec)
+        if o.get("size") is not None:
+            o["size"] = tuple(float(v) for v in o["size"])
+        objs.append(ObjectSpec(**o))
+    route = d.pop("route", None)
+    if route is not None:
+        route = [[float(v) for v in p] for p in route]
+    return SceneSpec(effects=EffectsSpec(**eff), objects=objs, route=route, **d)
