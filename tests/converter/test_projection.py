@@ -1,7 +1,5 @@
 """LiDAR -> label map: hand-computed projection, pixel rule, z-buffer, the devkit chain."""
 
-import json
-
 import numpy as np
 import pytest
 import transforms3d
@@ -9,10 +7,11 @@ import transforms3d
 from data_converters import CameraView, PointSource, label_maps, project_to_label_map
 from data_converters.labels import point_sources
 from data_converters.sample_infos import camera_views, scene_frames
-from renderworld.constants import CAMERA_NAMES, LIDARSEG_TO_OCC3D
+from renderworld.constants import CAMERA_NAMES
 from renderworld.data import IGNORE_LABEL, NuScenesReader
 from renderworld.data.labels2d import zbuffer_nearest
 from tests.converter.datasets_for_tests import VERSION
+from tests.converter.oracle import as_dict, keyframe_record, load_raw, oracle_labels
 
 K = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]])
 EYE = np.eye(4)
@@ -136,72 +135,27 @@ def test_sources_are_motion_compensated_through_their_own_ego_pose():
     assert label_maps(sources[::-1], [cam])[0].label.tolist() == [4]
 
 
-def quat_to_mat(q):
-    """Rotation from a [w, x, y, z] quaternion, written out (independent of the package)."""
-    w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def test_label_maps_follow_the_devkit_chain_on_a_moving_dataset(moving_raw):
     """Independent recomputation from the raw JSON records, step by step as the devkit does."""
-    root = moving_raw
-    tables = {
-        n: {r["token"]: r for r in json.loads((root / VERSION / f"{n}.json").read_text())}
-        for n in ("sample_data", "calibrated_sensor", "ego_pose")
-    }
-    reader = NuScenesReader(root, VERSION)
+    reader = NuScenesReader(moving_raw, VERSION)
+    raw = load_raw(moving_raw, VERSION)
     frames = scene_frames(reader, "scene-0061", 0)
-    _, views = camera_views(reader, frames.tokens[1], lambda hw: hw)
-    labels = label_maps(point_sources(reader, frames, 1), views)
-    lidar_sd = tables["sample_data"][frames.lidar_tokens[1]]
-    pts = np.fromfile(root / lidar_sd["filename"], "<f4").reshape(-1, 5)[:, :3].astype(float)
-    seg = np.fromfile(root / f"lidarseg/{VERSION}/{lidar_sd['token']}_lidarseg.bin", np.uint8)
-    n_checked = 0
-    for c, channel in enumerate(CAMERA_NAMES):
-        cam_sd = next(
-            r
-            for r in tables["sample_data"].values()
-            if r["sample_token"] == frames.tokens[1]
-            and r["is_key_frame"]
-            and r["filename"].startswith(f"samples/{channel}/")
-        )
-        assert cam_sd["timestamp"] != lidar_sd["timestamp"]
-        p = pts.copy()
-        for rec, inverse in (
-            (tables["calibrated_sensor"][lidar_sd["calibrated_sensor_token"]], False),
-            (tables["ego_pose"][lidar_sd["ego_pose_token"]], False),
-            (tables["ego_pose"][cam_sd["ego_pose_token"]], True),
-            (tables["calibrated_sensor"][cam_sd["calibrated_sensor_token"]], True),
-        ):
-            rot, t = quat_to_mat(rec["rotation"]), np.asarray(rec["translation"])
-            p = (p - t) @ rot if inverse else p @ rot.T + t
-        kmat = np.asarray(
-            tables["calibrated_sensor"][cam_sd["calibrated_sensor_token"]]["camera_intrinsic"]
-        )
-        uvw = p @ kmat.T
-        u, v, d = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2], p[:, 2]
-        keep = (d > 1) & (u >= 0) & (u < cam_sd["width"]) & (v >= 0) & (v < cam_sd["height"])
-        expect = {}
-        for i in np.flatnonzero(keep):
-            key = (int(np.floor(u[i])), int(np.floor(v[i])))
-            if key not in expect or d[i] < expect[key][0]:
-                expect[key] = (d[i], LIDARSEG_TO_OCC3D[int(seg[i])])
-        got = {
-            (int(a), int(b)): (float(x), int(y))
-            for a, b, x, y in zip(labels[c].u, labels[c].v, labels[c].depth, labels[c].label)
-        }
-        assert got.keys() == expect.keys(), channel
-        for key, (depth, label) in expect.items():
-            assert got[key][0] == pytest.approx(depth, rel=1e-6)
-            assert got[key][1] == label
-        n_checked += len(expect)
-    assert n_checked > 300  # the points really land in the cameras
+    token = frames.tokens[1]
+    for label_hw in (None, (61, 102)):
+        _, views = camera_views(reader, token, lambda hw, s=label_hw: s or hw)
+        labels = label_maps(point_sources(reader, frames, 1), views)
+        n_checked = 0
+        for c, channel in enumerate(CAMERA_NAMES):
+            lidar_ts = keyframe_record(raw, token, "LIDAR_TOP")["timestamp"]
+            assert keyframe_record(raw, token, channel)["timestamp"] != lidar_ts
+            expect = oracle_labels(moving_raw, raw, token, channel, label_hw)
+            got = as_dict(labels[c])
+            assert got.keys() == expect.keys(), channel
+            for key, (depth, label) in expect.items():
+                assert got[key][0] == pytest.approx(depth, rel=1e-6)
+                assert got[key][1] == label
+            n_checked += len(expect)
+        assert n_checked > 300  # the points really land in the cameras
 
 
 def test_sweeps_add_depth_only_points(moving_raw):
