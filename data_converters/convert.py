@@ -27,9 +27,16 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from data_converters.fast_index import TableIndex
 from data_converters.labels import label_inputs, make_labels
 from data_converters.projection import label_size_for
-from data_converters.sample_infos import SceneFrames, camera_views, info_rows, scene_frames
+from data_converters.sample_infos import (
+    SceneFrames,
+    camera_views,
+    info_rows,
+    occ_path,
+    scene_frames,
+)
 from data_converters.splits import assign_splits
 from renderworld.constants import COMMANDS
 from renderworld.data import NuScenesReader
@@ -152,12 +159,12 @@ def _label_up_to_date(path: Path, inputs: list[Path], params: dict) -> bool:
         return False
 
 
-def _fingerprint(reader: NuScenesReader, scenes: list[SceneFrames], opts, splits) -> str:
+def _fingerprint(tables: TableIndex, scenes: list[SceneFrames], opts, splits) -> str:
     h = hashlib.sha256()
-    for p in sorted(reader.version_dir.glob("*.json")):
+    for p in sorted(tables.reader.version_dir.glob("*.json")):
         st = p.stat()
         h.update(f"{p.name}:{st.st_size}:{st.st_mtime_ns};".encode())
-    occ = [reader.occ3d_path(t) is not None for s in scenes for t in s.tokens]
+    occ = [occ_path(tables, s.name, t) for s in scenes for t in s.tokens]
     h.update(json.dumps([opts.label_params(), splits, occ, opts.labels], sort_keys=True).encode())
     return h.hexdigest()
 
@@ -167,15 +174,15 @@ _STATE: dict = {}
 
 
 def _labels_task(task) -> tuple[str, bool]:
-    reader, scenes, opts = _STATE["reader"], _STATE["scenes"], _STATE["opts"]
+    tables, scenes, opts = _STATE["tables"], _STATE["scenes"], _STATE["opts"]
     scene_i, frame_i, views, out_path = task
     frames = scenes[scene_i]
     params = opts.label_params()
-    inputs = label_inputs(reader, frames, frame_i, opts.sweeps, opts.multiframe)
+    inputs = label_inputs(tables, frames, frame_i, opts.sweeps, opts.multiframe)
     if not opts.overwrite and _label_up_to_date(out_path, inputs, params):
         return str(out_path), False
     cameras, labels = make_labels(
-        reader, frames, frame_i, views, opts.sweeps, opts.multiframe, opts.min_depth
+        tables, frames, frame_i, views, opts.sweeps, opts.multiframe, opts.min_depth
     )
     save_labels2d(out_path, cameras, labels, params)
     return str(out_path), True
@@ -208,7 +215,8 @@ def create_data(
     out_dir.mkdir(parents=True, exist_ok=True)
     names = reader.scene_names()
     splits = assign_splits(names, reader.version_dir, strict=opts.strict_splits)
-    scenes = [scene_frames(reader, name, i) for i, name in enumerate(names)]
+    tables = TableIndex(reader)
+    scenes = [scene_frames(tables, name, i) for i, name in enumerate(names)]
     summary = ConvertSummary(out_dir=out_dir)
 
     # Cameras of every keyframe (checks images exist and match their records).
@@ -216,7 +224,7 @@ def create_data(
     bar = tqdm(total=total, desc="cameras", disable=not opts.progress, unit="kf")
     cams = []
     for frames in scenes:
-        cams.append([camera_views(reader, t, opts.label_size_fn) for t in frames.tokens])
+        cams.append([camera_views(tables, t, opts.label_size_fn) for t in frames.tokens])
         bar.update(len(frames))
     bar.close()
 
@@ -226,7 +234,7 @@ def create_data(
             for si, frames in enumerate(scenes)
             for fi, tok in enumerate(frames.tokens)
         ]
-        _STATE.update(reader=reader, scenes=scenes, opts=opts)
+        _STATE.update(tables=tables, scenes=scenes, opts=opts)
         bar = tqdm(total=len(tasks), desc="2-D labels", disable=not opts.progress, unit="kf")
         try:
             if opts.workers > 0 and len(tasks) > 1:
@@ -246,7 +254,7 @@ def create_data(
             _STATE.clear()
             bar.close()
 
-    fingerprint = _fingerprint(reader, scenes, opts, splits)
+    fingerprint = _fingerprint(tables, scenes, opts, splits)
     manifest_path = out_dir / _MANIFEST
     split_names = sorted(set(splits.values()))
     old = json.loads(manifest_path.read_text()) if manifest_path.is_file() else {}
@@ -267,7 +275,7 @@ def create_data(
         for si, frames in enumerate(scenes):
             rel = [_labels_relpath(frames.name, t) if opts.labels else "" for t in frames.tokens]
             split = splits[frames.name]
-            by_split[split] += info_rows(reader, frames, split, cams[si], rel)
+            by_split[split] += info_rows(tables, frames, split, cams[si], rel)
         meta = {
             "data_root": str(Path(data_root).resolve()),
             "version": version,

@@ -10,11 +10,11 @@ motion-compensates it into each camera.
 
 from __future__ import annotations
 
-import weakref
 from pathlib import Path
 
 import numpy as np
 
+from data_converters.fast_index import TableIndex
 from data_converters.projection import (
     STATIC_CLASS_IDS,
     CameraView,
@@ -24,7 +24,6 @@ from data_converters.projection import (
 )
 from data_converters.sample_infos import SceneFrames
 from renderworld.constants import CAMERA_NAMES
-from renderworld.data import NuScenesReader
 from renderworld.data.labels2d import SparseLabels2D
 from renderworld.geometry import DEVKIT_MIN_DEPTH
 
@@ -33,45 +32,31 @@ __all__ = ["sweep_tokens", "point_sources", "label_inputs", "make_labels"]
 _POSE_TABLES = ("calibrated_sensor.json", "ego_pose.json", "sample_data.json", "lidarseg.json")
 
 
-def sweep_tokens(reader: NuScenesReader, lidar_token: str, k: int) -> list[str]:
+def sweep_tokens(tables: TableIndex, lidar_token: str, k: int) -> list[str]:
     """Up to ``k`` LiDAR sample_data tokens before and ``k`` after ``lidar_token`` (chain order).
 
     Returns:
         [<= 2k] tokens, previous ones nearest first, then next ones nearest first.
     """
-    sd = reader.table("sample_data")
     out = []
     for direction in ("prev", "next"):
         cur = lidar_token
         for _ in range(k):
-            cur = sd.at[cur, direction]
+            cur = tables.field(cur, direction)
             if not cur:
                 break
             out.append(cur)
     return out
 
 
-_LIDARSEG_FILES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def _lidarseg_files(reader: NuScenesReader) -> dict[str, str]:
-    """{LiDAR sample_data token: lidarseg filename} (empty without lidarseg), cached per reader."""
-    if reader not in _LIDARSEG_FILES:
-        files = {}
-        if reader.has_lidarseg:
-            ls = reader.table("lidarseg")
-            files = dict(zip(ls["sample_data_token"], ls["filename"]))
-        _LIDARSEG_FILES[reader] = files
-    return _LIDARSEG_FILES[reader]
-
-
-def _labelled_points(reader: NuScenesReader, sd_token: str) -> tuple[np.ndarray, np.ndarray]:
+def _labelled_points(tables: TableIndex, sd_token: str) -> tuple[np.ndarray, np.ndarray]:
     """Points [N, 3] and Occ3D labels [N]: lidarseg for keyframes, 255 for sweeps.
 
     A keyframe of a dataset with lidarseg must have its labels (the reader raises otherwise).
     """
+    reader = tables.reader
     pts = reader.lidar_points(sd_token)[:, :3]
-    keyframe = bool(reader.table("sample_data").at[sd_token, "is_key_frame"])
+    keyframe = bool(tables.field(sd_token, "is_key_frame"))
     if reader.has_lidarseg and keyframe:
         return pts, reader.lidarseg_labels(sd_token, occ3d=True)
     return pts, unlabelled(len(pts))
@@ -82,44 +67,44 @@ def _neighbours(frames: SceneFrames, index: int, m: int) -> list[int]:
 
 
 def point_sources(
-    reader: NuScenesReader, frames: SceneFrames, index: int, sweeps: int = 0, multiframe: int = 0
+    tables: TableIndex, frames: SceneFrames, index: int, sweeps: int = 0, multiframe: int = 0
 ) -> list[PointSource]:
     """The point sources labelling keyframe ``index`` of a scene (keyframe first)."""
     key = frames.lidar_tokens[index]
     out = []
-    pts, labels = _labelled_points(reader, key)
-    out.append(PointSource(pts, labels, reader.sensor_to_ego(key), frames.ego_to_global[index]))
-    for sd in sweep_tokens(reader, key, sweeps):
-        pts, labels = _labelled_points(reader, sd)
-        out.append(PointSource(pts, labels, reader.sensor_to_ego(sd), reader.ego_to_global(sd)))
+    pts, labels = _labelled_points(tables, key)
+    out.append(PointSource(pts, labels, tables.sensor_to_ego(key), frames.ego_to_global[index]))
+    for sd in sweep_tokens(tables, key, sweeps):
+        pts, labels = _labelled_points(tables, sd)
+        out.append(PointSource(pts, labels, tables.sensor_to_ego(sd), tables.ego_to_global(sd)))
     for j in _neighbours(frames, index, multiframe):
         sd = frames.lidar_tokens[j]
-        pts, labels = _labelled_points(reader, sd)
+        pts, labels = _labelled_points(tables, sd)
         static = np.isin(labels, STATIC_CLASS_IDS)
         out.append(
             PointSource(
-                pts[static], labels[static], reader.sensor_to_ego(sd), frames.ego_to_global[j]
+                pts[static], labels[static], tables.sensor_to_ego(sd), frames.ego_to_global[j]
             )
         )
     return out
 
 
 def label_inputs(
-    reader: NuScenesReader, frames: SceneFrames, index: int, sweeps: int = 0, multiframe: int = 0
+    tables: TableIndex, frames: SceneFrames, index: int, sweeps: int = 0, multiframe: int = 0
 ) -> list[Path]:
     """Files a keyframe's labels are made from (for the re-run "newer than inputs" check)."""
-    tokens = [frames.lidar_tokens[index], *sweep_tokens(reader, frames.lidar_tokens[index], sweeps)]
+    reader = tables.reader
+    tokens = [frames.lidar_tokens[index], *sweep_tokens(tables, frames.lidar_tokens[index], sweeps)]
     tokens += [frames.lidar_tokens[j] for j in _neighbours(frames, index, multiframe)]
-    sd = reader.table("sample_data")
-    files = [reader.path(sd.at[t, "filename"]) for t in tokens]
-    seg = _lidarseg_files(reader)
+    files = [reader.path(tables.field(t, "filename")) for t in tokens]
+    seg = tables.lidarseg_files
     files += [reader.path(seg[t]) for t in tokens if t in seg]
     files += [reader.version_dir / name for name in _POSE_TABLES]
     return files
 
 
 def make_labels(
-    reader: NuScenesReader,
+    tables: TableIndex,
     frames: SceneFrames,
     index: int,
     views: list[CameraView],
@@ -132,5 +117,5 @@ def make_labels(
     Returns:
         ``(camera names [6], labels [6])`` in CAMERA_NAMES order.
     """
-    sources = point_sources(reader, frames, index, sweeps, multiframe)
+    sources = point_sources(tables, frames, index, sweeps, multiframe)
     return list(CAMERA_NAMES), label_maps(sources, views, min_depth)

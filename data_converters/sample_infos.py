@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from data_converters.fast_index import TableIndex
 from data_converters.projection import CameraView
 from data_converters.trajectory import (
     boxes_in_ego_frame,
@@ -16,9 +16,9 @@ from data_converters.trajectory import (
     ego_history,
 )
 from renderworld.constants import CAMERA_NAMES, FUTURE_FRAMES, LIDAR_NAME
-from renderworld.data import DatasetError, NuScenesReader
+from renderworld.data import DatasetError
 
-__all__ = ["SceneFrames", "scene_frames", "camera_views", "info_rows", "image_size"]
+__all__ = ["SceneFrames", "scene_frames", "camera_views", "info_rows", "image_size", "occ_path"]
 
 
 @dataclass(frozen=True)
@@ -43,40 +43,41 @@ class SceneFrames:
         return len(self.tokens)
 
 
-def scene_frames(reader: NuScenesReader, name: str, index: int) -> SceneFrames:
+def scene_frames(tables: TableIndex, name: str, index: int) -> SceneFrames:
     """Collect a scene's keyframes and their LiDAR-time ego poses."""
-    tokens = reader.scene_samples(name)
-    lidar = [reader.sample_data_token(t, LIDAR_NAME) for t in tokens]
-    poses = np.stack([reader.ego_to_global(sd) for sd in lidar])
+    tokens = tables.reader.scene_samples(name)
+    lidar = [tables.reader.sample_data_token(t, LIDAR_NAME) for t in tokens]
+    poses = np.stack([tables.ego_to_global(sd) for sd in lidar])
     return SceneFrames(name, index, tokens, lidar, poses)
 
 
-def image_size(reader: NuScenesReader, sd_token: str) -> tuple[int, int]:
+def image_size(tables: TableIndex, sd_token: str) -> tuple[int, int]:
     """(H, W) of a camera image, checked against its sample_data record.
 
     Reads only the image header. Raises DatasetError naming the file when it is missing, not
     an image, or its size differs from the record's width/height.
     """
-    path = reader.image_path(sd_token)
+    path = tables.reader.path(tables.field(sd_token, "filename"))
+    if not path.is_file():
+        raise DatasetError(f"{path}: image file is missing")
     try:
         with Image.open(path) as im:
             w, h = im.size
     except (UnidentifiedImageError, OSError) as exc:
         raise DatasetError(f"{path}: not a readable image ({exc})") from exc
-    rec = reader.table("sample_data").loc[sd_token]
-    rw, rh = int(rec["width"]), int(rec["height"])
+    rw, rh = int(tables.field(sd_token, "width")), int(tables.field(sd_token, "height"))
     if (rw, rh) != (0, 0) and (rw, rh) != (w, h):
         raise DatasetError(f"{path}: image is {w}x{h} but sample_data {sd_token!r} says {rw}x{rh}")
     return h, w
 
 
 def camera_views(
-    reader: NuScenesReader, sample_token: str, label_size_fn
+    tables: TableIndex, sample_token: str, label_size_fn
 ) -> tuple[list[str], list[CameraView]]:
     """The six cameras of a keyframe (CAMERA_NAMES order), each at its own timestamp.
 
     Args:
-        reader: the dataset.
+        tables: the dataset's table index.
         sample_token: keyframe.
         label_size_fn: (H, W) image size -> (H_label, W_label).
 
@@ -85,14 +86,14 @@ def camera_views(
     """
     tokens, views = [], []
     for cam in CAMERA_NAMES:
-        sd = reader.sample_data_token(sample_token, cam)
-        size = image_size(reader, sd)
+        sd = tables.reader.sample_data_token(sample_token, cam)
+        size = image_size(tables, sd)
         tokens.append(sd)
         views.append(
             CameraView(
-                K=reader.intrinsics(sd),
-                sensor_to_ego=reader.sensor_to_ego(sd),
-                ego_to_global=reader.ego_to_global(sd),
+                K=tables.intrinsics(sd),
+                sensor_to_ego=tables.sensor_to_ego(sd),
+                ego_to_global=tables.ego_to_global(sd),
                 image_size=size,
                 label_size=label_size_fn(size),
             )
@@ -104,8 +105,14 @@ def _flat(mat: np.ndarray) -> list[float]:
     return np.asarray(mat, dtype=np.float64).reshape(-1).tolist()
 
 
+def occ_path(tables: TableIndex, scene: str, sample_token: str) -> str:
+    """Dataroot-relative ``gts/<scene>/<token>/labels.npz`` if that file exists, else ''."""
+    rel = f"gts/{scene}/{sample_token}/labels.npz"
+    return rel if tables.reader.path(rel).is_file() else ""
+
+
 def info_rows(
-    reader: NuScenesReader,
+    tables: TableIndex,
     frames: SceneFrames,
     split: str,
     cams: list[tuple[list[str], list[CameraView]]],
@@ -114,7 +121,7 @@ def info_rows(
     """Info rows of one scene (batch_formats.md), in frame order.
 
     Args:
-        reader: the dataset.
+        tables: the dataset's table index.
         frames: the scene's keyframes.
         split: split name of the scene.
         cams: per frame, the output of :func:`camera_views`.
@@ -123,8 +130,8 @@ def info_rows(
     Returns:
         [N] dicts with the infos columns.
     """
-    sd_table = reader.table("sample_data")
-    boxes = [reader.sample_boxes(t) for t in frames.tokens]
+    reader = tables.reader
+    boxes = [tables.sample_boxes(t) for t in frames.tokens]
     rows = []
     for i, token in enumerate(frames.tokens):
         lidar = frames.lidar_tokens[i]
@@ -136,7 +143,6 @@ def info_rows(
             future_boxes.append(
                 boxes_in_ego_frame(boxes[k], e_t).tolist() if k < len(frames) else []
             )
-        occ = reader.occ3d_path(token)
         row = {
             "scene_name": frames.name,
             "scene_index": frames.index,
@@ -147,20 +153,20 @@ def info_rows(
         }
         sd_tokens, views = cams[i]
         for c, (sd, view) in enumerate(zip(sd_tokens, views)):
-            row[f"cam{c}_path"] = sd_table.at[sd, "filename"]
+            row[f"cam{c}_path"] = tables.field(sd, "filename")
             row[f"cam{c}_intrinsics"] = _flat(view.K)
             row[f"cam{c}_width"] = view.image_size[1]
             row[f"cam{c}_height"] = view.image_size[0]
             row[f"cam{c}_sensor2ego"] = _flat(view.sensor_to_ego)
             row[f"cam{c}_ego2global"] = _flat(view.ego_to_global)
-            row[f"cam{c}_timestamp"] = reader.timestamp(sd)
+            row[f"cam{c}_timestamp"] = int(tables.field(sd, "timestamp"))
         row.update(
             {
                 "lidar_token": lidar,
-                "lidar_path": sd_table.at[lidar, "filename"],
-                "lidar2ego": _flat(reader.sensor_to_ego(lidar)),
+                "lidar_path": tables.field(lidar, "filename"),
+                "lidar2ego": _flat(tables.sensor_to_ego(lidar)),
                 "ego2global": _flat(e_t),
-                "occ_path": "" if occ is None else _relative(occ, reader.dataroot),
+                "occ_path": occ_path(tables, frames.name, token),
                 "labels2d_path": labels2d_paths[i],
                 "ego_history": hist.reshape(-1).tolist(),
                 "ego_history_mask": hist_mask.tolist(),
@@ -172,7 +178,3 @@ def info_rows(
         )
         rows.append(row)
     return rows
-
-
-def _relative(path: Path, root: Path) -> str:
-    return Path(path).resolve().relative_to(Path(root).resolve()).as_posix()

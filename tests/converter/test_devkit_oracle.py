@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from data_converters import label_maps
+from data_converters.fast_index import TableIndex
 from data_converters.labels import point_sources
 from data_converters.sample_infos import camera_views, scene_frames
 from renderworld.constants import CAMERA_NAMES
@@ -37,12 +38,12 @@ def test_labels_match_devkit_map_pointcloud_to_image(tmp_path):
     from tests.devkit_oracle import run_devkit
 
     root = build(tmp_path / "ds", num_samples=3, ego_path="left", num_points=3000)
-    reader = NuScenesReader(root, VERSION)
-    frames = scene_frames(reader, "scene-0061", 0)
+    tables = TableIndex(NuScenesReader(root, VERSION))
+    frames = scene_frames(tables, "scene-0061", 0)
     token = frames.tokens[1]
     result = run_devkit(SNIPPET, str(root), VERSION, token, '["' + '","'.join(CAMERA_NAMES) + '"]')
-    _, views = camera_views(reader, token, lambda hw: hw)  # full resolution
-    labels = label_maps(point_sources(reader, frames, 1), views)
+    _, views = camera_views(tables, token, lambda hw: hw)  # full resolution
+    labels = label_maps(point_sources(tables, frames, 1), views)
     total = 0
     for c, cam in enumerate(CAMERA_NAMES):
         u, v, depth = (np.asarray(x) for x in result[cam])

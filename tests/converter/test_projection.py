@@ -5,10 +5,11 @@ import pytest
 import transforms3d
 
 from data_converters import CameraView, PointSource, label_maps, project_to_label_map
+from data_converters.fast_index import TableIndex
 from data_converters.labels import point_sources
 from data_converters.sample_infos import camera_views, scene_frames
 from renderworld.constants import CAMERA_NAMES
-from renderworld.data import IGNORE_LABEL, NuScenesReader
+from renderworld.data import IGNORE_LABEL, DatasetError, NuScenesReader
 from renderworld.data.labels2d import zbuffer_nearest
 from tests.converter.datasets_for_tests import VERSION
 from tests.converter.oracle import as_dict, keyframe_record, load_raw, oracle_labels
@@ -137,13 +138,13 @@ def test_sources_are_motion_compensated_through_their_own_ego_pose():
 
 def test_label_maps_follow_the_devkit_chain_on_a_moving_dataset(moving_raw):
     """Independent recomputation from the raw JSON records, step by step as the devkit does."""
-    reader = NuScenesReader(moving_raw, VERSION)
+    tables = TableIndex(NuScenesReader(moving_raw, VERSION))
     raw = load_raw(moving_raw, VERSION)
-    frames = scene_frames(reader, "scene-0061", 0)
+    frames = scene_frames(tables, "scene-0061", 0)
     token = frames.tokens[1]
     for label_hw in (None, (61, 102)):
-        _, views = camera_views(reader, token, lambda hw, s=label_hw: s or hw)
-        labels = label_maps(point_sources(reader, frames, 1), views)
+        _, views = camera_views(tables, token, lambda hw, s=label_hw: s or hw)
+        labels = label_maps(point_sources(tables, frames, 1), views)
         n_checked = 0
         for c, channel in enumerate(CAMERA_NAMES):
             lidar_ts = keyframe_record(raw, token, "LIDAR_TOP")["timestamp"]
@@ -159,16 +160,31 @@ def test_label_maps_follow_the_devkit_chain_on_a_moving_dataset(moving_raw):
 
 
 def test_sweeps_add_depth_only_points(moving_raw):
-    reader = NuScenesReader(moving_raw, VERSION)
-    frames = scene_frames(reader, "scene-0061", 0)
-    key = point_sources(reader, frames, 1)
-    with_sweeps = point_sources(reader, frames, 1, sweeps=2)
+    tables = TableIndex(NuScenesReader(moving_raw, VERSION))
+    frames = scene_frames(tables, "scene-0061", 0)
+    key = point_sources(tables, frames, 1)
+    with_sweeps = point_sources(tables, frames, 1, sweeps=2)
     assert len(key) == 1 and len(with_sweeps) == 5  # 2 before and 2 after the keyframe
     assert all((s.labels == IGNORE_LABEL).all() for s in with_sweeps[1:])
-    ts = {reader.timestamp(t) for t in reader.table("sample_data").index}
+    ts = {tables.field(t, "timestamp") for t in tables.reader.table("sample_data").index}
     poses = {tuple(s.ego_to_global[:3, 3]) for s in with_sweeps}
     assert len(poses) == 5 and len(ts) > 5  # every sweep brings its own ego pose
-    multi = point_sources(reader, frames, 1, multiframe=1)
+    multi = point_sources(tables, frames, 1, multiframe=1)
     assert len(multi) == 3
     static = np.isin(multi[1].labels, [11, 12, 13, 14, 15, 16])
     assert static.all() and 0 < len(multi[1].labels) < len(key[0].labels)
+
+
+def test_table_index_agrees_with_the_reader(moving_raw):
+    reader = NuScenesReader(moving_raw, VERSION)
+    tables = TableIndex(reader)
+    for sd in reader.table("sample_data").index[::3]:
+        np.testing.assert_array_equal(tables.sensor_to_ego(sd), reader.sensor_to_ego(sd))
+        np.testing.assert_array_equal(tables.ego_to_global(sd), reader.ego_to_global(sd))
+        assert tables.field(sd, "timestamp") == reader.timestamp(sd)
+    for token in reader.table("sample").index:
+        ours, theirs = tables.sample_boxes(token), reader.sample_boxes(token)
+        for col in ours.columns:
+            np.testing.assert_array_equal(ours[col].to_numpy(), theirs[col].to_numpy())
+    with pytest.raises(DatasetError, match=r"sample_data.json: no record with token 'nope'"):
+        tables.field("nope", "filename")
