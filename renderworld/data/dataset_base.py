@@ -79,6 +79,7 @@ class InfosDataset(Dataset):
         ego2global: [N, 4, 4] float64 ego poses at the LiDAR keyframe timestamps.
         scene_first: [N] row of each row's scene's first keyframe.
         scene_count: [N] keyframes in each row's scene.
+        text: {column: [N] str} of the string columns.
     """
 
     def __init__(self, infos, data_root, grid):
@@ -91,6 +92,10 @@ class InfosDataset(Dataset):
         self.grid = resolve_grid(grid)
         self.ego2global = stack_column(self.infos, "ego2global", (4, 4))
         self.scene_first, self.scene_count = _scene_positions(self.infos)
+        # Plain lists for per-item access (DataFrame.at costs more than the rest of an item).
+        names = ["sample_token", "scene_name", "occ_path", "labels2d_path", "command"]
+        names += [c for c in self.infos.columns if c.startswith("cam") and c.endswith("_path")]
+        self.text = {name: self.infos[name].astype(str).tolist() for name in names}
 
     def _occ(self, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(semantics, mask_camera, mask_lidar) of a labels.npz on the configured grid."""

@@ -31,6 +31,14 @@ __all__ = ["Img2OccDataset", "OccSequenceDataset", "resolve_grid"]
 NUM_CAMS = len(CAMERA_NAMES)
 
 
+def _draft_scale(w: int, h: int, w_in: int, h_in: int) -> int:
+    """Largest JPEG draft divisor s in (8, 4, 2) dividing W and H with W/s >= W_in, H/s >= H_in."""
+    for s in (8, 4, 2):
+        if w % s == 0 and h % s == 0 and w // s >= w_in and h // s >= h_in:
+            return s
+    return 1
+
+
 class Img2OccDataset(InfosDataset):
     """Keyframes for Img2Occ training (see module docstring and batch_formats.md).
 
@@ -105,7 +113,7 @@ class Img2OccDataset(InfosDataset):
         return invert_pose(self.ego2global[ref]) @ self.cam_ego2global[row] @ self.sensor2ego[row]
 
     def _labels(self, row: int):
-        path = Path(self.infos.at[row, "labels2d_path"])
+        path = Path(self.text["labels2d_path"][row])
         path = path if path.is_absolute() else self.labels_root / path
         cameras, labels = load_labels2d(path)
         if tuple(cameras) != CAMERA_NAMES:
@@ -132,23 +140,31 @@ class Img2OccDataset(InfosDataset):
         )
 
     def _images(self, row: int):
+        """([C, 3, H_in, W_in] float32 tensor in [0, 1], [C, 3, 3] intrinsics at the input size)."""
         h_in, w_in = self.input_size
-        images = np.empty((NUM_CAMS, 3, h_in, w_in), dtype=np.float32)
+        buf = np.empty((NUM_CAMS, h_in, w_in, 3), dtype=np.uint8)
         for c in range(NUM_CAMS):
-            path = self.data_root / self.infos.at[row, f"cam{c}_path"]
+            path = self.data_root / self.text[f"cam{c}_path"][row]
+            h, w = (int(x) for x in self.image_hw[row, c])
             try:
                 with Image.open(path) as im:
-                    if im.size != (self.image_hw[row, c, 1], self.image_hw[row, c, 0]):
+                    if im.size != (w, h):
                         raise DatasetError(
-                            f"{path}: image is {im.size[0]}x{im.size[1]}, infos say "
-                            f"{self.image_hw[row, c, 1]}x{self.image_hw[row, c, 0]}"
+                            f"{path}: image is {im.size[0]}x{im.size[1]}, infos say {w}x{h}"
                         )
+                    # JPEG DCT scaling by an exact divisor keeps the pixel-area mapping (pixel i
+                    # covers [s i, s (i + 1)) of the original), so the intrinsics scale stays
+                    # W_in / W; it only makes decoding cheaper before the bilinear resize.
+                    s = _draft_scale(w, h, w_in, h_in)
+                    if s > 1 and im.format == "JPEG":
+                        im.draft("RGB", (w // s, h // s))
                     im = im.convert("RGB").resize((w_in, h_in), Image.Resampling.BILINEAR)
-                    images[c] = np.asarray(im, dtype=np.float32).transpose(2, 0, 1) / 255.0
+                    buf[c] = np.asarray(im)
             except FileNotFoundError:
                 raise DatasetError(f"{path}: image file is missing") from None
             except (UnidentifiedImageError, OSError) as exc:
                 raise DatasetError(f"{path}: not a readable image ({exc})") from exc
+        images = torch.from_numpy(buf).permute(0, 3, 1, 2).float().div_(255.0).contiguous()
         return images, self._scaled_K(row, self.input_size)
 
     def _neighbours(self, row: int) -> list[int]:
@@ -165,14 +181,14 @@ class Img2OccDataset(InfosDataset):
         images, k_in = self._images(row)
         depth, sem, k_r = self._labels(row)
         item = {
-            "images": torch.from_numpy(images),
+            "images": images,
             "intrinsics": torch.from_numpy(k_in.astype(np.float32)),
             "render_intrinsics": torch.from_numpy(k_r.astype(np.float32)),
             "cam_to_ego": torch.from_numpy(self._cam_to_ego(row, row).astype(np.float32)),
             "depth": torch.from_numpy(depth),
             "semantics": torch.from_numpy(sem),
         }
-        occ_path = self.infos.at[row, "occ_path"]
+        occ_path = self.text["occ_path"][row]
         if self.load_occ and occ_path:
             occ, mask_cam, mask_lidar = self._occ(self.data_root / occ_path)
             item["occ"] = torch.from_numpy(occ)
@@ -188,7 +204,7 @@ class Img2OccDataset(InfosDataset):
             item["adj_depth"] = torch.from_numpy(np.concatenate([a[1] for a in adj]))
             item["adj_semantics"] = torch.from_numpy(np.concatenate([a[2] for a in adj]))
         item["meta"] = {
-            "sample_token": str(self.infos.at[row, "sample_token"]),
-            "scene": str(self.infos.at[row, "scene_name"]),
+            "sample_token": (self.text["sample_token"][row]),
+            "scene": (self.text["scene_name"][row]),
         }
         return item

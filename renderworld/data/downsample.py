@@ -67,16 +67,16 @@ def downsample_occupancy(semantics: np.ndarray, factor) -> np.ndarray:
         return semantics.astype(np.uint8)
     blocks = _blocks(semantics, f, "semantics")
     out_shape = blocks.shape[:-1]
-    n_cells = int(np.prod(out_shape))
-    cell = np.repeat(np.arange(n_cells, dtype=np.int64), blocks.shape[-1])
-    counts = np.bincount(
-        cell * NUM_OCC3D_CLASSES + blocks.reshape(-1).astype(np.int64),
-        minlength=n_cells * NUM_OCC3D_CLASSES,
-    ).reshape(n_cells, NUM_OCC3D_CLASSES)
-    occupied = counts[:, :FREE_ID]  # non-free classes 0..16 (FREE_ID is the last class)
-    best = occupied.argmax(axis=1)  # first maximum -> lower id on ties
-    best[occupied.max(axis=1) == 0] = FREE_ID
-    return best.astype(np.uint8).reshape(out_shape)
+    blocks = blocks.reshape(-1, blocks.shape[-1])
+    out = np.full(blocks.shape[0], FREE_ID, dtype=np.uint8)
+    occupied = np.flatnonzero((blocks != FREE_ID).any(axis=1))  # most cells are all free
+    if occupied.size:
+        sub = blocks[occupied].astype(np.int32)
+        sub += (np.arange(occupied.size, dtype=np.int32) * NUM_OCC3D_CLASSES)[:, None]
+        counts = np.bincount(sub.ravel(), minlength=occupied.size * NUM_OCC3D_CLASSES)
+        counts = counts.reshape(occupied.size, NUM_OCC3D_CLASSES)[:, :FREE_ID]  # non-free 0..16
+        out[occupied] = counts.argmax(axis=1)  # first maximum -> lower id on ties
+    return out.reshape(out_shape)
 
 
 def downsample_mask(mask: np.ndarray, factor) -> np.ndarray:

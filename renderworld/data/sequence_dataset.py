@@ -105,8 +105,8 @@ class OccSequenceDataset(InfosDataset):
 
     def _occ_path(self, row: int) -> Path:
         if self.occ_root is None:
-            return self.data_root / self.infos.at[row, "occ_path"]
-        scene, token = self.infos.at[row, "scene_name"], self.infos.at[row, "sample_token"]
+            return self.data_root / self.text["occ_path"][row]
+        scene, token = self.text["scene_name"][row], self.text["sample_token"][row]
         return self.occ_root / scene / token / "labels.npz"
 
     def _frame_occ(self, row: int) -> tuple[np.ndarray, np.ndarray]:
@@ -144,11 +144,11 @@ class OccSequenceDataset(InfosDataset):
             "ego_displacements": torch.from_numpy(disp.astype(np.float32)),
             "future_traj": torch.from_numpy(traj.reshape(self.future, 2).astype(np.float32)),
             "future_mask": torch.ones(self.future, dtype=torch.bool),
-            "command": torch.tensor(COMMANDS.index(self.infos.at[last, "command"])),
+            "command": torch.tensor(COMMANDS.index(self.text["command"][last])),
             "future_boxes": torch.from_numpy(boxes),
             "future_boxes_mask": torch.from_numpy(boxes_mask),
             "meta": {
-                "scene": str(self.infos.at[last, "scene_name"]),
-                "sample_tokens": [str(self.infos.at[r, "sample_token"]) for r in rows],
+                "scene": (self.text["scene_name"][last]),
+                "sample_tokens": [(self.text["sample_token"][r]) for r in rows],
             },
         }

@@ -269,3 +269,25 @@ def test_validation_messages(train):
         Img2OccDataset(root / "nope.parquet", root)
     with pytest.raises(IndexError, match="index 8 out of range"):
         Img2OccDataset(infos, root)[8]
+
+
+def test_jpeg_draft_decoding_keeps_the_pixel_mapping(tmp_path):
+    root = tmp_path / "ds"
+    out = build_and_convert(root, num_samples=2, num_points=50)
+    infos = load_infos(out, "train")
+    # Replace CAM_FRONT by an 800x448 JPEG (divisible by 8) with a bright square at (300, 200).
+    img = np.full((448, 800, 3), 20, np.uint8)
+    img[192:208, 292:308] = 250
+    path = root / infos["cam0_path"].iloc[0]
+    Image.fromarray(img).save(path, format="JPEG", quality=95)
+    infos.loc[0, ["cam0_width", "cam0_height"]] = [800, 448]
+    ds = Img2OccDataset(infos, root, input_size=(112, 200))  # draft decodes at 1/4 (200x112)
+    got = ds[0]["images"][0].mean(0).numpy()
+    with Image.open(path) as im:
+        ref = np.asarray(im.convert("RGB").resize((200, 112), Image.Resampling.BILINEAR))
+    assert np.abs(got - ref.mean(-1) / 255).mean() < 0.02
+    ys, xs = np.nonzero(got > 0.5)
+    np.testing.assert_allclose([xs.mean() + 0.5, ys.mean() + 0.5], [300 / 4, 200 / 4], atol=0.3)
+    k = ds[0]["intrinsics"][0].numpy()
+    k0 = np.reshape(infos["cam0_intrinsics"].iloc[0], (3, 3))
+    np.testing.assert_allclose(k[0], k0[0] / 4, rtol=1e-6)
