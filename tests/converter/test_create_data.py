@@ -12,7 +12,13 @@ import pytest
 
 from data_converters import ConvertOptions, create_data
 from renderworld.constants import CAMERA_NAMES
-from renderworld.data import DatasetError, NuScenesReader, load_infos, load_labels2d
+from renderworld.data import (
+    DatasetError,
+    Img2OccDataset,
+    NuScenesReader,
+    load_infos,
+    load_labels2d,
+)
 from renderworld.data.infos import infos_schema, stack_column
 from tests.converter.datasets_for_tests import VERSION, build
 from tests.data.builder import read_tables, write_tables
@@ -222,3 +228,44 @@ def test_cli_runs_end_to_end(small, tmp_path):
         timeout=300,
     )
     assert bad.returncode != 0 and "nope does not exist" in bad.stderr
+
+
+def test_workers_give_identical_labels_and_labels_false(small, tmp_path):
+    a = create_data(small, VERSION, out=tmp_path / "a", options=QUIET).out_dir
+    b = create_data(
+        small, VERSION, out=tmp_path / "b", options=ConvertOptions(progress=False, workers=2)
+    ).out_dir
+    for rel in load_infos(a, "train")["labels2d_path"]:
+        (_, la), (_, lb) = load_labels2d(a / rel), load_labels2d(b / rel)
+        for x, y in zip(la, lb):
+            for key in ("u", "v", "depth", "label"):
+                np.testing.assert_array_equal(getattr(x, key), getattr(y, key))
+    c = create_data(
+        small, VERSION, out=tmp_path / "c", options=ConvertOptions(progress=False, labels=False)
+    ).out_dir
+    assert set(load_infos(c, "train")["labels2d_path"]) == {""}
+    assert not (c / "labels2d").exists()
+    with pytest.raises(DatasetError, match=r"has no 2-D labels \(converted with labels=false\?\)"):
+        Img2OccDataset(load_infos(c, "train"), small)
+
+
+def test_multiframe_labels_add_static_points_only(tmp_path):
+    root = build(tmp_path / "ds", num_samples=3, num_points=3000, ego_path="left")
+    one = create_data(root, VERSION, out=tmp_path / "one", options=QUIET).out_dir
+    multi = create_data(
+        root, VERSION, out=tmp_path / "multi", options=ConvertOptions(progress=False, multiframe=1)
+    ).out_dir
+    rel = load_infos(one, "train")["labels2d_path"].iloc[1]
+    (_, base), (_, more) = load_labels2d(one / rel), load_labels2d(multi / rel)
+    added = 0
+    for x, y in zip(base, more):
+        bx = {(u, v): (d, lab) for u, v, d, lab in zip(x.u, x.v, x.depth, x.label)}
+        by = {(u, v): (d, lab) for u, v, d, lab in zip(y.u, y.v, y.depth, y.label)}
+        assert bx.keys() <= by.keys()
+        for key, (d, lab) in by.items():
+            if key not in bx:
+                assert lab in (11, 12, 13, 14, 15, 16)  # neighbours bring static classes only
+                added += 1
+            else:
+                assert d <= bx[key][0]  # the z-buffer keeps the nearest of both frames
+    assert added > 20
