@@ -1,0 +1,88 @@
+"""Validation shared by training and evaluation, and the precision policy.
+
+Validation runs over a rank-sharded, unpadded loader; the stage's additive statistics are
+summed over ranks before metrics are computed, and global RNG states are left untouched.
+"""
+
+from __future__ import annotations
+
+import warnings
+from contextlib import nullcontext
+from typing import Any
+
+import torch
+from torch import nn
+from torch.utils.data import DataLoader, Dataset
+
+from renderworld.training.config import TrainerConfig
+from renderworld.training.data import ShardedSampler, make_loader
+from renderworld.training.distributed import DistInfo, all_reduce_sum
+from renderworld.training.registry import Stage
+from renderworld.training.seed import rng_isolated
+
+__all__ = ["autocast_context", "effective_precision", "build_val_loader", "run_validation"]
+
+
+def autocast_context(precision: str, device: torch.device) -> Any:
+    """Autocast for ``"bf16"``/``"fp16"`` on CUDA; a no-op otherwise."""
+    if device.type != "cuda" or precision == "32":
+        return nullcontext()
+    dtype = torch.bfloat16 if precision == "bf16" else torch.float16
+    return torch.autocast(device_type="cuda", dtype=dtype)
+
+
+def effective_precision(precision: str, device: torch.device) -> str:
+    """Mixed precision is CUDA-only here: on CPU fall back to 32-bit, with a warning."""
+    if precision != "32" and device.type != "cuda":
+        warnings.warn(
+            f"trainer.precision={precision!r} needs CUDA; training on {device} in 32-bit",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+        return "32"
+    return precision
+
+
+def build_val_loader(
+    stage: Stage, dataset: Dataset, tcfg: TrainerConfig, info: DistInfo, seed: int
+) -> DataLoader:
+    """Validation loader: in order, sharded over ranks without padding or repeats."""
+    sampler = ShardedSampler(
+        len(dataset),  # type: ignore[arg-type]
+        num_replicas=info.world_size,
+        rank=info.rank,
+        shuffle=False,
+        drop_last=False,
+    )
+    return make_loader(
+        dataset,
+        sampler,
+        batch_size=tcfg.val_batch_size or tcfg.batch_size,
+        num_workers=tcfg.num_workers,
+        collate_fn=stage.collate_fn(),
+        drop_last=False,
+        pin_memory=tcfg.pin_memory and info.device.type == "cuda",
+        seed=seed,
+    )
+
+
+def run_validation(
+    stage: Stage, model: nn.Module, loader: DataLoader, info: DistInfo, precision: str
+) -> dict[str, float]:
+    """Stage statistics on this rank's shard, summed over ranks, turned into ``val/`` metrics.
+
+    Global RNG states are left untouched, so validating does not change training.
+    """
+    was_training = model.training
+    model.eval()
+    try:
+        with rng_isolated(), torch.no_grad(), autocast_context(precision, info.device):
+            stats = stage.evaluate(model, loader)
+    finally:
+        model.train(was_training)
+    if not isinstance(stats, dict):
+        raise TypeError(
+            f"{type(stage).__name__}.evaluate: expected a dict of tensors, got {type(stats)}"
+        )
+    metrics = stage.compute_metrics(all_reduce_sum(stats, info))
+    return {f"val/{k}": float(v) for k, v in metrics.items()}

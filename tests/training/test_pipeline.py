@@ -1,0 +1,47 @@
+import sys
+
+import pytest
+
+from renderworld.training.pipeline import PipelineError, Step, run_steps
+
+
+def _steps(tmp_path, fail_second=False):
+    a_out, b_out = tmp_path / "a", tmp_path / "b"
+    cfg = tmp_path / "cfg.yaml"
+    if not cfg.exists():
+        cfg.write_text("x: 1\n")
+    write_a = f"import pathlib; p=pathlib.Path({str(a_out)!r}); p.mkdir(exist_ok=True); "
+    write_a += "f=p/'n'; f.write_text(str(int(f.read_text())+1 if f.exists() else 1))"
+    code_b = "raise SystemExit(3)" if fail_second else "print('b ran')"
+    return [
+        Step("a", "first", (sys.executable, "-c", write_a), a_out, inputs=(cfg,)),
+        Step("b", "second", (sys.executable, "-c", code_b), b_out, depends_on=("a",)),
+    ]
+
+
+def test_second_run_skips_and_input_change_reruns(tmp_path):
+    quiet = lambda *_: None  # noqa: E731
+    r1 = run_steps(_steps(tmp_path), tmp_path / "logs", tmp_path, echo=quiet)
+    assert [r.status for r in r1] == ["ran", "ran"]
+    r2 = run_steps(_steps(tmp_path), tmp_path / "logs", tmp_path, echo=quiet)
+    assert [r.status for r in r2] == ["skipped", "skipped"]
+    assert (tmp_path / "a" / "n").read_text() == "1"
+    (tmp_path / "cfg.yaml").write_text("x: 2\n")  # an input changed: a and its dependant re-run
+    r3 = run_steps(_steps(tmp_path), tmp_path / "logs", tmp_path, echo=quiet)
+    assert [r.status for r in r3] == ["ran", "ran"]
+    assert (tmp_path / "a" / "n").read_text() == "2"
+    assert "b ran" in (tmp_path / "logs" / "b.log").read_text()
+
+
+def test_failed_step_keeps_earlier_work_and_retries(tmp_path):
+    quiet = lambda *_: None  # noqa: E731
+    with pytest.raises(PipelineError, match=r"step 'b' failed with exit code 3 .*b.log"):
+        run_steps(_steps(tmp_path, fail_second=True), tmp_path / "logs", tmp_path, echo=quiet)
+    r = run_steps(_steps(tmp_path), tmp_path / "logs", tmp_path, echo=quiet)
+    assert [x.status for x in r] == ["skipped", "ran"]
+
+
+def test_unknown_dependency_is_rejected(tmp_path):
+    step = Step("x", "x", (sys.executable, "-c", "pass"), tmp_path / "x", depends_on=("nope",))
+    with pytest.raises(ValueError, match="depends_on names unknown step 'nope'"):
+        run_steps([step], tmp_path / "logs", tmp_path, echo=lambda *_: None)
