@@ -119,7 +119,8 @@ def camera_noise(rng, img: np.ndarray, night: bool) -> np.ndarray:
     """Exposure variation and sensor noise on a linear RGB image [H, W, 3] in 0..1."""
     gain = rng.normal(1.0, 0.06)
     sigma = 0.035 if night else 0.015
-    return img * gain + rng.normal(0.0, sigma, img.shape)
+    noise = rng.standard_normal(img.shape, dtype=np.float32) * np.float32(sigma)
+    return img * np.float32(gain) + noise
 
 
 def camera_fog(img: np.ndarray, depth: np.ndarray, colour=(0.75, 0.77, 0.8), beta=35.0):

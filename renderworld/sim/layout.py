@@ -108,7 +108,7 @@ def plan_ego(spec: SceneSpec, duration: float, rng: np.random.Generator) -> EgoP
         sign = 1.0 if spec.behaviour == "turn_left" else -1.0
         pieces = [("line", approach, 0), ("arc", r_turn, sign * np.pi / 2), ("line", tail, 0)]
         path = Path(arc_path((0.0, -o), 0.0, pieces))
-        turn_window = (approach - 12.0, approach + r_turn * np.pi / 2 + 20.0)
+        turn_window = (approach - 15.0, approach + r_turn * np.pi / 2 + 10.0)
     else:
         path = Path(np.array([[0.0, -o], [tail, -o]]))
         if spec.behaviour.startswith("lane_change"):
@@ -131,29 +131,28 @@ def time_ego(plan: EgoPlan, spec: SceneSpec, times: np.ndarray, rng) -> None:
         plan.trajectory = Trajectory.fixed(times, xy[0, 0], xy[0, 1], float(h[0]))
         return
     s = np.zeros_like(times)
-    speed, stop = v, None
+    stop = None
     if spec.behaviour == "stop_and_go":
         t_brake = times[-1] * rng.uniform(0.15, 0.3)
-        t_stop = t_brake + v / 2.5
-        t_go = t_stop + rng.uniform(2.0, 3.0)
-        stop = (t_brake, t_stop, t_go)
+        t_go = t_brake + v / 2.5 + rng.uniform(2.0, 3.0)
+        stop = (t_brake, t_brake + v / 2.5, t_go)
     i0 = int(np.searchsorted(times, 0.0))
+    sp = v
     for i in range(i0 + 1, len(times)):
-        t, sp = times[i - 1], speed
+        t, dt = times[i - 1], times[i] - times[i - 1]
+        target = v
         if plan.turn_window is not None and plan.turn_window[0] <= s[i - 1] <= plan.turn_window[1]:
-            sp = plan.v_turn
-        if stop is not None:
-            if stop[0] <= t < stop[1]:
-                sp = v * (stop[1] - t) / (stop[1] - stop[0])
-            elif stop[1] <= t < stop[2]:
-                sp = 0.0
-            elif t >= stop[2]:
-                sp = min(v, 1.5 * (t - stop[2]))
-        s[i] = s[i - 1] + sp * (times[i] - times[i - 1])
-    s[:i0] = -v * (0.0 - times[:i0]) if stop is None else 0.0
-    s = np.maximum(s, 0.0) if spec.route is not None else s
-    ext = Path(np.concatenate([plan.path.at(0.0)[0][None] - [[20.0, 0.0]], plan.path.xy]))
-    # Arc lengths of `ext` start 20 m before the path; shift so that s=0 is the path start.
+            target = plan.v_turn
+        if stop is not None and stop[0] <= t < stop[2]:
+            target = 0.0
+        # Comfortable longitudinal dynamics: brake <= 2.5 m/s^2, accelerate <= 1.5 m/s^2.
+        sp = float(np.clip(target, sp - 2.5 * dt, sp + 1.5 * dt))
+        s[i] = s[i - 1] + sp * dt
+    s[:i0] = v * times[:i0] if stop is None else 0.0
+    (p0,), (h0,) = plan.path.at(np.zeros(1))
+    back = p0 - 20.0 * np.array([np.cos(h0), np.sin(h0)])
+    # `ext` starts 20 m behind the path start, so that poses before t = 0 exist.
+    ext = Path(np.concatenate([back[None], plan.path.xy]))
     plan.trajectory = Trajectory.along(ext, s + 20.0, times)
     if stop is not None:
         plan.stop_s = float(s[np.searchsorted(times, stop[1])])

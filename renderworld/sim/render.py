@@ -149,11 +149,11 @@ def render_camera(world, caster: Raycaster, rig: SensorRig, channel: str, t: flo
     """Render camera ``channel`` at time ``t`` with ego pose [4, 4] → uint8 image [H, W, 3]."""
     w, h = rig.width, rig.height
     c2s = ego_pose @ rig.sensor_to_ego[channel]
-    dirs = rotate(c2s, rig.pixel_rays(channel, w, h))
-    origin = c2s[:3, 3]
+    dirs = rotate(c2s.astype(np.float32), rig.pixel_rays(channel, w, h).astype(np.float32))
+    origin = c2s[:3, 3].astype(np.float32)
     hits = caster.cast(origin[None], dirs, t)
     hit = np.isfinite(hits.t)
-    p = origin + dirs * np.where(hit, hits.t, 0.0)[:, None]
+    p = origin + dirs * np.where(hit, hits.t, np.float32(0.0))[:, None]
     labels = hit_labels(world, hits, p)
     col = _albedo(world, hits, labels, p)
     eff = world.spec.effects
@@ -171,20 +171,24 @@ def render_camera(world, caster: Raycaster, rig: SensorRig, channel: str, t: flo
                 * np.clip((hits.normal * -rel / dist[:, None]).sum(1), 0, 1)
                 / (1 + (dist / 12.0) ** 2)
             )
-            for lamp in world.lamps[np.linalg.norm(world.lamps[:, :2] - origin[:2], axis=1) < 80]:
-                d = lamp - p
-                r = np.linalg.norm(d, axis=1) + 1e-6
-                light += 0.9 * np.clip((hits.normal * d).sum(1) / r, 0, 1) / (1 + (r / 6.0) ** 2)
+            near = np.linalg.norm(world.lamps[:, :2] - origin[:2], axis=1)
+            lit = hit & (hits.t < 60.0)  # lamps light only nearby surfaces
+            p32, n32 = p[lit].astype(np.float32), hits.normal[lit]
+            for lamp in world.lamps[np.argsort(near)[:6]].astype(np.float32):
+                d = lamp - p32
+                r2 = (d * d).sum(1) + 1e-6
+                cos = np.clip((n32 * d).sum(1), 0, None) / np.sqrt(r2)
+                light[lit] += 0.9 * cos / (1 + r2 / 36.0)
             sky = np.array([0.02, 0.03, 0.07])
     else:
-        light = 0.45 + 0.6 * np.clip((hits.normal * sun).sum(1), 0, 1)
+        light = 0.45 + 0.6 * np.clip((hits.normal * sun.astype(np.float32)).sum(1), 0, 1)
         sky = None
-    img = col * light[:, None]
+    img = col * light.astype(np.float32)[:, None]
     up = np.clip(dirs[:, 2], 0, 1)[:, None]
     sky_col = (
         np.broadcast_to(sky, img.shape)
         if sky is not None
-        else (1 - up) * np.array([0.82, 0.86, 0.92]) + up * np.array([0.4, 0.55, 0.85])
+        else (1 - up) * np.float32([0.82, 0.86, 0.92]) + up * np.float32([0.4, 0.55, 0.85])
     )
     img = np.where(hit[:, None], img, sky_col).reshape(h, w, 3)
     if eff.weather == "fog":
@@ -196,7 +200,7 @@ def render_camera(world, caster: Raycaster, rig: SensorRig, channel: str, t: flo
     if eff.camera_noise:
         with report.effect("camera_noise", world.name):
             img = fx.camera_noise(rng, img, eff.night)
-    return (np.clip(img, 0, 1) ** (1 / 1.1) * 255 + 0.5).astype(np.uint8)
+    return (np.clip(img, 0, 1) ** np.float32(1 / 1.1) * 255 + 0.5).astype(np.uint8)
 
 
 def camera_depth(caster: Raycaster, rig: SensorRig, channel: str, t: float, ego_pose, w, h):

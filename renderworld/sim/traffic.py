@@ -25,7 +25,7 @@ from renderworld.sim.objects import make_object
 from renderworld.sim.roads import ROAD, GroundRaster
 from renderworld.sim.scene import OBJECT_CATEGORIES, SceneSpec
 
-__all__ = ["build_world"]
+__all__ = ["build_world", "ego_route"]
 
 _MOVING = ["vehicle.car"] * 7 + ["vehicle.truck", "vehicle.bus.rigid", "vehicle.motorcycle",
                                  "vehicle.bicycle", "vehicle.car"]  # fmt: skip
@@ -45,21 +45,8 @@ def build_world(name: str, spec: SceneSpec, keyframes: int, seed: int, index: in
         ValueError: on an invalid description, an explicit route leaving the road or
             overlapping explicit static objects.
     """
-    spec.validate("scene")
-    if keyframes < 1:
-        raise ValueError(f"keyframes: expected an integer >= 1, got {keyframes}")
-    rng = np.random.default_rng([seed, index, 7])
+    plan, network, rng, times = ego_route(spec, keyframes, seed, index)
     duration = float(keyframe_times(keyframes)[-1])
-    times = motion_times(duration)
-    plan = plan_ego(spec, duration, rng)
-    network = build_roads(spec, plan.junction_x, rng)
-    if spec.kind == "curve" and spec.route is None:
-        full = Path(network.roads[0].points).offset(-plan.lane_offset)
-        s0, _ = full.project(np.array([[0.0, -plan.lane_offset]]))
-        plan.path = Path(full.xy[full.s >= s0[0]])
-    if spec.route is not None:
-        plan.path = Path(np.asarray(spec.route, dtype=np.float64))
-    time_ego(plan, spec, times, rng)
     visible = plan.trajectory.pose(np.linspace(0, duration, 50))[0]
     lo, hi = visible.min(0) - 80.0, visible.max(0) + 80.0
     raster = GroundRaster(network, (lo[0], lo[1], hi[0], hi[1]))
@@ -83,6 +70,33 @@ def build_world(name: str, spec: SceneSpec, keyframes: int, seed: int, index: in
         [[*o.trajectory.xy[0], 6.8] for o in world.objects if o.key.startswith("pole")]
     ).reshape(-1, 3)
     return world
+
+
+def ego_route(spec: SceneSpec, keyframes: int, seed: int, index: int):
+    """The ego's route and road network of a scene, without objects or sensors (cheap).
+
+    :func:`build_world` starts with exactly this, so the trajectories agree.
+
+    Returns:
+        ``(plan: EgoPlan, network: RoadNetwork, rng, times [T] s)``; ``plan.trajectory`` holds
+        the rear-axle pose over time (scene frame).
+    """
+    spec.validate("scene")
+    if isinstance(keyframes, bool) or not isinstance(keyframes, int) or keyframes < 1:
+        raise ValueError(f"keyframes: expected an integer >= 1, got {keyframes}")
+    rng = np.random.default_rng([seed, index, 7])
+    duration = float(keyframe_times(keyframes)[-1])
+    times = motion_times(duration)
+    plan = plan_ego(spec, duration, rng)
+    network = build_roads(spec, plan.junction_x, rng)
+    if spec.kind == "curve" and spec.route is None:
+        full = Path(network.roads[0].points).offset(-plan.lane_offset)
+        s0, _ = full.project(np.array([[0.0, -plan.lane_offset]]))
+        plan.path = Path(full.xy[full.s >= s0[0]])
+    if spec.route is not None:
+        plan.path = Path(np.asarray(spec.route, dtype=np.float64))
+    time_ego(plan, spec, times, rng)
+    return plan, network, rng, times
 
 
 def _check_route(world: World) -> None:
