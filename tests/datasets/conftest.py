@@ -1,0 +1,1 @@
+from tests.converter.conftest import left_turn  # noqa: F401  (shared session fixture)
