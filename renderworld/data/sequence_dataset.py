@@ -41,12 +41,17 @@ class OccSequenceDataset(InfosDataset):
         cache_frames: keyframes whose grid-sampled occupancy is kept in memory (least recently
             used dropped); overlapping windows then load each file about once.
 
-    Item (dict): occ uint8 [T,X,Y,Z] (each frame in its own ego frame); mask_camera bool
-    [T,X,Y,Z]; ego_displacements float32 [T-1,2]; future_traj float32 [F,2]; future_mask bool
-    [F]; command int64 (index into COMMANDS, of the last history frame); future_boxes float32
-    [F,M,6] ``[x, y, length, width, yaw, occ3d_class]`` and future_boxes_mask bool [F,M], in
-    the last history frame's ego frame; meta {scene, sample_tokens [T]}. Windows never cross
-    scenes.
+    Item (dict):
+        occ: uint8 [T,X,Y,Z], each frame in its own ego frame.
+        mask_camera: bool [T,X,Y,Z].
+        ego_displacements: float32 [T-1,2], ``p[i+1] - p[i]`` with ``p`` the frames' positions
+            in the last history frame's ego frame (metres; VAD convention, as PlanRequest).
+        future_traj: float32 [F,2], positions of the future frames in that frame (metres).
+        future_mask: bool [F].
+        command: int64, index into COMMANDS, of the last history frame.
+        future_boxes: float32 [F,M,6] ``[x, y, length, width, yaw, occ3d_class]`` in the last
+            history frame's ego frame; future_boxes_mask bool [F,M].
+        meta: {scene, sample_tokens [T]}. Windows never cross scenes.
     """
 
     def __init__(
@@ -127,9 +132,13 @@ class OccSequenceDataset(InfosDataset):
         rows = list(range(start, start + self.history + self.future))
         occ, mask_cam = zip(*(self._frame_occ(r) for r in rows))
         poses = self.ego2global[rows]
-        disp = (invert_pose(poses[:-1]) @ poses[1:])[:, :2, 3]
         last = rows[self.history - 1]
-        traj = (invert_pose(poses[self.history - 1]) @ poses[self.history :])[:, :2, 3]
+        # Positions of every frame in the current (last history) ego frame; displacements are
+        # their per-step differences (VAD convention, as renderworld.planning.PlanRequest), so
+        # the future trajectory is exactly the cumulative sum of the future displacements.
+        pos = (invert_pose(poses[self.history - 1]) @ poses)[:, :2, 3]
+        disp = np.diff(pos, axis=0)
+        traj = pos[self.history :]
         m = self.max_boxes
         boxes = np.zeros((self.future, m, len(BOX_FIELDS)), dtype=np.float32)
         boxes_mask = np.zeros((self.future, m), dtype=bool)

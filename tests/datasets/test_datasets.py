@@ -22,6 +22,7 @@ from renderworld.data import (
 )
 from renderworld.data.infos import stack_column
 from renderworld.geometry import invert_pose, project_points
+from renderworld.world.ego import displacements_from_poses
 from tests.converter.datasets_for_tests import VERSION, build, build_and_convert
 
 C = 6
@@ -218,8 +219,10 @@ def test_sequence_items_and_windows(train, left_turn):
     assert item["ego_displacements"].shape == (5, 2) and item["future_traj"].shape == (3, 2)
     assert item["future_mask"].tolist() == [True] * 3
     rows = both.set_index("sample_token").loc[item["meta"]["sample_tokens"]]
-    hist = stack_column(rows, "ego_history", (4, 2))
-    np.testing.assert_allclose(item["ego_displacements"].numpy(), hist[1:, 3], atol=1e-5)
+    poses = stack_column(rows, "ego2global", (4, 4))
+    disp = item["ego_displacements"].numpy()
+    np.testing.assert_allclose(disp, displacements_from_poses(poses, current=2), atol=1e-5)
+    np.testing.assert_allclose(np.cumsum(disp[2:], axis=0), item["future_traj"].numpy(), atol=1e-5)
     last = rows.iloc[2]
     np.testing.assert_allclose(
         item["future_traj"].numpy(), np.reshape(last["ego_future"], (6, 2))[:3], atol=1e-5
