@@ -32,8 +32,8 @@ def street_scene(shape: tuple[int, int, int] = (32, 32, 8), seed: int = 0) -> to
     g = torch.Generator().manual_seed(seed)
     X, Y, Z = shape
 
-    def r(lo: int, hi: int) -> int:
-        return int(torch.randint(lo, hi, (1,), generator=g))
+    def r(lo: int, hi: int) -> int:  # uniform in [lo, hi), lo when the range is empty
+        return int(torch.randint(lo, max(hi, lo + 1), (1,), generator=g))
 
     occ = torch.full(shape, FREE_ID, dtype=torch.uint8)
     road_w, y0 = r(X // 6, X // 3), r(Y // 4, Y // 2)
