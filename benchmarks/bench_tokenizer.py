@@ -7,6 +7,7 @@ eval mode under ``torch.no_grad``, on the chosen device; the ratio column is aga
 ``plain`` variant of the same setting measured in the same run.
 
     PYTHONPATH=. python benchmarks/bench_tokenizer.py [--device cpu|cuda] [--reps 5] [--batch 1]
+        [--threads N] [--variants plain,am_vae] [--settings coarse/25x25]
 """
 
 from __future__ import annotations
@@ -56,12 +57,18 @@ def main() -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--batch", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=0, help="CPU intra-op threads (0: torch's)")
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--settings", default=",".join(SETTINGS))
     args = ap.parse_args()
     device = torch.device(args.device)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    print(f"device={device} batch={args.batch} reps={args.reps} (medians, ms per frame)")
+    print(
+        f"device={device} threads={torch.get_num_threads()} batch={args.batch} "
+        f"reps={args.reps} (medians, ms per frame)"
+    )
     header = (
         f"{'setting':<22}{'variant':<10}{'params':>11}{'encode ms':>11}{'decode ms':>11}"
         f"{'enc ratio':>10}{'dec ratio':>10}{'peak MiB':>10}"

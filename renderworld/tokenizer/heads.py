@@ -29,6 +29,8 @@ NON_AIR_IDS: tuple[int, ...] = tuple(c for c in range(NUM_OCC3D_CLASSES) if c !=
 # Position of each Occ3D class in cat([non_air_log_probs, free_log_prob]).
 _CAT_ORDER = list(NON_AIR_IDS) + [FREE_ID]
 _INV_ORDER = tuple(_CAT_ORDER.index(c) for c in range(NUM_OCC3D_CLASSES))
+# With Occ3D's ids free is the last class: no re-ordering and the non-air ids are a prefix.
+_IDENTITY_ORDER = _INV_ORDER == tuple(range(NUM_OCC3D_CLASSES))
 
 
 def combine_air_mask(air_logit: torch.Tensor, non_air_logits: torch.Tensor) -> torch.Tensor:
@@ -50,8 +52,9 @@ def combine_air_mask(air_logit: torch.Tensor, non_air_logits: torch.Tensor) -> t
     log_occupied = F.logsigmoid(-air_logit)  # log(1 - sigmoid(a)), stable for large |a|
     log_classes = log_occupied[..., None] + F.log_softmax(non_air_logits, dim=-1)
     cat = torch.cat([log_classes, log_free[..., None]], dim=-1)
-    index = torch.tensor(_INV_ORDER, device=cat.device)
-    return cat.index_select(-1, index)
+    if _IDENTITY_ORDER:
+        return cat
+    return cat.index_select(-1, torch.tensor(_INV_ORDER, device=cat.device))
 
 
 def scores_to_occupancy(scores: torch.Tensor, air_mask_head: bool) -> torch.Tensor:
@@ -71,7 +74,10 @@ def scores_to_occupancy(scores: torch.Tensor, air_mask_head: bool) -> torch.Tens
         )
     if not air_mask_head:
         return scores.argmax(-1).to(torch.uint8)
-    non_air = torch.tensor(NON_AIR_IDS, device=scores.device)
-    best = non_air[scores.index_select(-1, non_air).argmax(-1)]
+    if _IDENTITY_ORDER:
+        best = scores[..., : len(NON_AIR_IDS)].argmax(-1)
+    else:
+        non_air = torch.tensor(NON_AIR_IDS, device=scores.device)
+        best = non_air[scores.index_select(-1, non_air).argmax(-1)]
     free = scores[..., FREE_ID] >= math.log(0.5)
     return torch.where(free, torch.full_like(best, FREE_ID), best).to(torch.uint8)

@@ -82,3 +82,13 @@ def test_lr_spike_2000_steps(variant):
     # still learning after the spike: the last loss is below the loss at the end of the spike
     spike_end = history[int(2000 * 0.6) - 1]["loss/total"]
     assert history[-1]["loss/total"] < spike_end
+
+
+def test_fit_rejects_bad_arguments():
+    model = build_tokenizer(_cfg("plain", (16, 16, 8), (8, 8)))
+    with pytest.raises(ValueError, match="steps: expected a positive int"):
+        fit(model, [street_batch(1, (16, 16, 8))], steps=0)
+    with pytest.raises(ValueError, match="lr: expected > 0"):
+        fit(model, [street_batch(1, (16, 16, 8))], steps=1, lr=0.0)
+    with pytest.raises(ValueError, match="batches: expected at least one batch"):
+        fit(model, [], steps=1)
