@@ -1,0 +1,69 @@
+"""Helpers shared by the stages: dataset locations, grids and occupancy confusion statistics."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from renderworld.constants import NUM_OCC3D_CLASSES, GridSpec
+from renderworld.metrics.occupancy import geometry_iou, iou_per_class, mean_iou
+from renderworld.training.config import grid_spec_from_config
+
+__all__ = ["infos_dir", "grid_of", "confusion_stats", "occupancy_metrics"]
+
+
+def infos_dir(cfg: Any) -> Path:
+    """Folder of ``infos_<split>.parquet``: ``stage.infos_dir`` or the converter's default.
+
+    The default is ``<dataset.data_root>/renderworld_infos/<dataset.version>`` (what
+    ``tools/create_data.py`` writes when given no ``out``).
+
+    Raises:
+        ValueError: when the folder does not exist (names it and the command that makes it).
+    """
+    explicit = cfg.stage.get("infos_dir") if "stage" in cfg else None
+    root = Path(str(cfg.dataset.data_root))
+    path = Path(explicit) if explicit else root / "renderworld_infos" / str(cfg.dataset.version)
+    if not path.is_dir():
+        raise ValueError(
+            f"stage.infos_dir: {path} does not exist; run tools/create_data.py "
+            f"data_root={root} version={cfg.dataset.version} first"
+        )
+    return path
+
+
+def grid_of(cfg: Any) -> GridSpec:
+    """The run's grid (config group ``grid``)."""
+    return grid_spec_from_config(cfg.grid)
+
+
+def confusion_stats(
+    pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    """18x18 confusion (rows = ground truth) as float64, summable across ranks.
+
+    Args:
+        pred: [...] integer Occ3D ids.
+        gt: [...] integer Occ3D ids, same shape.
+        mask: optional [...] bool; only True voxels count.
+    """
+    n = NUM_OCC3D_CLASSES
+    p, g = pred.reshape(-1).long(), gt.reshape(-1).long()
+    if mask is not None:
+        keep = mask.reshape(-1).bool()
+        p, g = p[keep], g[keep]
+    return torch.bincount(g * n + p, minlength=n * n).reshape(n, n).double()
+
+
+def occupancy_metrics(confusion: torch.Tensor, prefix: str) -> dict[str, float]:
+    """mIoU over classes 0..16 (free excluded), geometry IoU and per-class IoU from a confusion."""
+    conf = confusion.cpu().numpy()
+    per_class = iou_per_class(conf)
+    out = {f"{prefix}miou": float(mean_iou(conf)), f"{prefix}iou": float(geometry_iou(conf))}
+    from renderworld.constants import OCC3D_CLASSES
+
+    for c, name in enumerate(OCC3D_CLASSES[:-1]):
+        out[f"{prefix}iou_{name}"] = float(per_class[c])
+    return out

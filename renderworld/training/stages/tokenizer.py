@@ -1,0 +1,116 @@
+"""The ``tokenizer`` stage: train AM-VAE / VQ-VAE variants on occupancy frames.
+
+Data: single keyframes of ``OccSequenceDataset`` (history 1, future 0) on the run's grid, from
+the dataset's Occ3D gts or from exported pseudo labels (``stage.occ_root``). Metrics:
+reconstruction mIoU over classes 0..16 and occupied-vs-free IoU on the full volume (OccWorld
+protocol), and the same inside the camera mask (``cam/`` prefix), from confusions summed over
+the split (and over ranks).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from omegaconf import OmegaConf
+from torch import nn
+from torch.utils.data import Dataset
+
+from renderworld.data import OccSequenceDataset, load_infos
+from renderworld.tokenizer import SceneTokenizer, TokenizerConfig, build_tokenizer
+from renderworld.training.checkpoint import load_checkpoint
+from renderworld.training.registry import Stage, register_stage
+from renderworld.training.stages.common import (
+    confusion_stats,
+    grid_of,
+    infos_dir,
+    occupancy_metrics,
+)
+
+__all__ = ["TokenizerStage", "OccFrames", "tokenizer_config", "load_tokenizer"]
+
+
+class OccFrames(Dataset):
+    """Single occupancy frames: ``{"occ": uint8 [X,Y,Z], "mask_camera": bool [X,Y,Z]}``."""
+
+    def __init__(self, infos, data_root, grid, occ_root=None):
+        self.seq = OccSequenceDataset(
+            infos, data_root, history=1, future=0, grid=grid, occ_root=occ_root
+        )
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        item = self.seq[i]
+        return {"occ": item["occ"][0], "mask_camera": item["mask_camera"][0]}
+
+
+def tokenizer_config(cfg: Any) -> TokenizerConfig:
+    """The :class:`TokenizerConfig` of a run config (``stage.model`` on the run's grid)."""
+    grid = grid_of(cfg)
+    model = OmegaConf.to_container(cfg.stage.model, resolve=True) if cfg.stage.model else {}
+    latent = model.pop("latent_shape", None)
+    if latent is None:
+        f = next(f for f in (4, 2, 1) if grid.shape[0] % f == 0 and grid.shape[1] % f == 0)
+        latent = (grid.shape[0] // f, grid.shape[1] // f)
+    return TokenizerConfig(grid_shape=tuple(grid.shape), latent_shape=tuple(latent), **model)
+
+
+def load_tokenizer(path, device: str | torch.device = "cpu") -> SceneTokenizer:
+    """Rebuild a trained tokenizer from a ``tokenizer`` checkpoint, frozen, in eval mode.
+
+    Args:
+        path: ``last.pt`` / ``best.pt`` written by ``tools/train.py stage=tokenizer``.
+        device: where to put it.
+
+    Raises:
+        CheckpointError: when the file is not a tokenizer checkpoint or its weights do not fit.
+    """
+    from renderworld.training.checkpoint import check_state_dict_keys
+
+    ckpt = load_checkpoint(path, expected_stage="tokenizer")
+    model = build_tokenizer(tokenizer_config(OmegaConf.create(ckpt["config"])))
+    check_state_dict_keys(model, ckpt["model"], str(path))
+    model.load_state_dict(ckpt["model"], strict=True)
+    model.to(device).eval()
+    for p in model.parameters():
+        p.requires_grad_(False)
+    return model
+
+
+@register_stage("tokenizer")
+class TokenizerStage(Stage):
+    """Scene tokenizer training (variant from ``stage.model.variant``)."""
+
+    def build_model(self, cfg: Any) -> nn.Module:
+        return build_tokenizer(tokenizer_config(cfg))
+
+    def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
+        folder = infos_dir(cfg)
+        grid, occ_root = grid_of(cfg), cfg.stage.get("occ_root")
+        root = str(cfg.dataset.data_root)
+        train = OccFrames(load_infos(folder, cfg.dataset.train_split), root, grid, occ_root)
+        val = OccFrames(load_infos(folder, cfg.dataset.val_split), root, grid, occ_root)
+        return train, val
+
+    def loss(self, model: nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, Any]]:
+        out = model(batch["occ"])
+        return out.loss, out.logs
+
+    def evaluate(self, model: nn.Module, loader: Any) -> dict[str, torch.Tensor]:
+        device = next(model.parameters()).device
+        raw = model.module if hasattr(model, "module") else model
+        full = torch.zeros(18, 18, dtype=torch.float64, device=device)
+        cam = torch.zeros_like(full)
+        for batch in loader:
+            occ = batch["occ"].to(device)
+            pred = raw.decode(raw.encode(occ))
+            full += confusion_stats(pred, occ).to(device)
+            cam += confusion_stats(pred, occ, batch["mask_camera"].to(device)).to(device)
+        return {"confusion": full, "confusion_camera": cam}
+
+    def compute_metrics(self, stats: dict[str, torch.Tensor]) -> dict[str, float]:
+        out = occupancy_metrics(stats["confusion"], "")
+        cam = occupancy_metrics(stats["confusion_camera"], "cam/")
+        return {**out, "cam/miou": cam["cam/miou"], "cam/iou": cam["cam/iou"]}
