@@ -35,5 +35,11 @@ def synthetic_batch() -> dict:
 
 
 @pytest.fixture(autouse=True)
-def _seed():
+def _seed_and_one_thread():
+    # Tensors here are tiny: intra-op threads only add OpenMP overhead, which becomes
+    # severe when the CPU is shared (measured 10x slower steps with 2 threads under load).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
     torch.manual_seed(0)
+    yield
+    torch.set_num_threads(threads)
