@@ -80,7 +80,9 @@ def _validate(means, quats, scales, opacities, features, viewmats, Ks, width, he
         if t.dtype != means.dtype:
             raise TypeError(f"{name}: expected dtype {means.dtype} (that of means), got {t.dtype}")
         if t.device != means.device:
-            raise ValueError(f"{name}: expected device {means.device} (that of means), got {t.device}")
+            raise ValueError(
+                f"{name}: expected device {means.device} (that of means), got {t.device}"
+            )
     for name, v in (("width", width), ("height", height)):
         if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
             raise ValueError(f"{name}: expected a positive int, got {v!r}")

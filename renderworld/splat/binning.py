@@ -26,24 +26,27 @@ class TileBins:
         tile_size: tile side (pixels).
         tiles_x: tiles per image row; ``tiles_y`` tiles per column.
         tiles_y: tiles per image column.
-        gauss_ids: [M] int64 flat camera–Gaussian index ``c * N + n`` per intersection, sorted by
+        pair_ids: [M] int64 row of :class:`ProjectedGaussians` per intersection, sorted by
             (camera, tile, depth).
-        tile_offsets: [C * tiles_y * tiles_x + 1] int64; intersections of flat tile t are
-            ``gauss_ids[tile_offsets[t]:tile_offsets[t + 1]]``.
+        tile_offsets: [C * tiles_y * tiles_x + 1] int64; intersections of flat tile t (camera
+            ``t // (tiles_x * tiles_y)``) are ``pair_ids[tile_offsets[t]:tile_offsets[t + 1]]``.
     """
 
     tile_size: int
     tiles_x: int
     tiles_y: int
-    gauss_ids: torch.Tensor
+    pair_ids: torch.Tensor
     tile_offsets: torch.Tensor
 
 
-def bin_gaussians(proj: ProjectedGaussians, width: int, height: int, tile_size: int) -> TileBins:
+def bin_gaussians(
+    proj: ProjectedGaussians, num_cams: int, width: int, height: int, tile_size: int
+) -> TileBins:
     """Bin projected Gaussians into ``tile_size`` tiles (no gradient).
 
     Args:
-        proj: projection of N Gaussians into C cameras.
+        proj: projection of N Gaussians into C cameras (V pairs).
+        num_cams: C.
         width: image width (pixels).
         height: image height (pixels).
         tile_size: tile side (pixels), > 0.
@@ -51,15 +54,14 @@ def bin_gaussians(proj: ProjectedGaussians, width: int, height: int, tile_size: 
     Returns:
         :class:`TileBins`.
     """
-    num_cams, num_g = proj.valid.shape
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
-    device = proj.valid.device
+    device = proj.cam_ids.device
     with torch.no_grad():
-        flat = torch.nonzero(proj.valid.reshape(-1)).squeeze(1)  # [V] c * N + n
-        cam = flat // num_g
-        uv = proj.means2d.detach().reshape(-1, 2)[flat].double()
-        ext = proj.extents.reshape(-1, 2)[flat].double()
+        num_pairs = len(proj)
+        cam = proj.cam_ids
+        uv = proj.means2d.detach().double()
+        ext = proj.extents.double()
         # Pixel columns i whose centre i + 0.5 lies in [u - ex, u + ex], clamped to the image.
         lo = torch.ceil(uv - ext - 0.5)
         hi = torch.floor(uv + ext - 0.5)
@@ -71,22 +73,20 @@ def bin_gaussians(proj: ProjectedGaussians, width: int, height: int, tile_size: 
         ny = (hi_y - lo_y + 1).clamp_min(0)
         counts = nx * ny
         # Depth rank over all valid pairs (stable: ties keep index order).
-        depth = proj.depths.detach().reshape(-1)[flat]
-        rank = torch.empty_like(flat)
-        rank[torch.sort(depth, stable=True).indices] = torch.arange(
-            flat.numel(), device=device
+        rank = torch.empty_like(cam)
+        rank[torch.sort(proj.depths.detach(), stable=True).indices] = torch.arange(
+            num_pairs, device=device
         )
-        owner = torch.repeat_interleave(torch.arange(flat.numel(), device=device), counts)
+        owner = torch.repeat_interleave(torch.arange(num_pairs, device=device), counts)
         starts = torch.cumsum(counts, 0) - counts
         local = torch.arange(owner.numel(), device=device) - starts[owner]
         tx = lo_x[owner] + local % nx[owner]
         ty = lo_y[owner] + local // nx[owner]
         tile = (cam[owner] * tiles_y + ty) * tiles_x + tx
-        key = tile * (flat.numel() + 1) + rank[owner]
-        order = torch.sort(key).indices
-        gauss_ids = flat[owner[order]]
+        key = tile * (num_pairs + 1) + rank[owner]
+        pair_ids = owner[torch.sort(key).indices]
         num_tiles = num_cams * tiles_y * tiles_x
         per_tile = torch.bincount(tile, minlength=num_tiles)
         tile_offsets = torch.zeros(num_tiles + 1, dtype=torch.long, device=device)
         tile_offsets[1:] = torch.cumsum(per_tile, 0)
-    return TileBins(tile_size, tiles_x, tiles_y, gauss_ids, tile_offsets)
+    return TileBins(tile_size, tiles_x, tiles_y, pair_ids, tile_offsets)

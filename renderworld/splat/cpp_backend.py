@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from renderworld.splat.binning import TileBins, bin_gaussians
+from renderworld.splat.binning import bin_gaussians
 from renderworld.splat.projection import project_gaussians
 from renderworld.splat.tiled import TILE_SIZE
 
@@ -78,55 +78,53 @@ def cpp_available() -> bool:
 
 
 class _Composite(torch.autograd.Function):
-    """Compositing of binned Gaussians; inputs and outputs as :func:`_composite`."""
+    """Kernel compositing; differentiable in means2d, conics, depths, opacities, features."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, depths, bins, num_cams, width, height):
+    def forward(ctx, means2d, conics, depths, opacities, features, proj_static, bins, size):
+        extents, pair_gauss = proj_static
+        num_cams, width, height = size
         ext = load_extension()
         args = (
             means2d.contiguous(),
             conics.contiguous(),
+            extents.contiguous(),
+            depths.contiguous(),
+            pair_gauss.contiguous(),
             opacities.contiguous(),
             features.contiguous(),
-            depths.contiguous(),
-            bins.gauss_ids.contiguous(),
+            bins.pair_ids.contiguous(),
             bins.tile_offsets.contiguous(),
         )
         geom = (bins.tiles_x, bins.tiles_y, bins.tile_size, width, height)
         out, t_final, last = ext.splat_forward(*args, num_cams, *geom)
         ctx.save_for_backward(*args, t_final, last)
         ctx.geom = geom
-        ctx.mark_non_differentiable(t_final, last)
-        return out, t_final, last
+        return out
 
     @staticmethod
-    def backward(ctx, grad_out, _grad_t, _grad_last):
+    def backward(ctx, grad_out):
         *args, t_final, last = ctx.saved_tensors
-        means2d, conics, opacities, features, depths, ids, _ = args
-        ext = load_extension()
-        rows = ext.splat_backward(*args, *ctx.geom, grad_out.contiguous(), t_final, last)
+        means2d, pair_gauss, features, ids = args[0], args[4], args[6], args[7]
+        rows = load_extension().splat_backward(
+            *args, *ctx.geom, grad_out.contiguous(), t_final, last
+        )
         num_g, dim = features.shape
+        # Row layout: [u, v, conic a, b, c, opacity, depth, features...].
         g_pair = torch.zeros(means2d.shape[0], 6, dtype=rows.dtype, device=rows.device)
         g_pair.index_add_(0, ids, rows[:, [0, 1, 2, 3, 4, 6]])
         g_gauss = torch.zeros(num_g, 1 + dim, dtype=rows.dtype, device=rows.device)
-        g_gauss.index_add_(0, ids % num_g, rows[:, [5] + list(range(7, 7 + dim))])
+        g_gauss.index_add_(0, pair_gauss[ids], torch.cat([rows[:, 5:6], rows[:, 7:]], dim=1))
         return (
             g_pair[:, 0:2],
             g_pair[:, 2:5],
+            g_pair[:, 5],
             g_gauss[:, 0],
             g_gauss[:, 1:],
-            g_pair[:, 5],
-            None,
             None,
             None,
             None,
         )
-
-
-def _composite(means2d, conics, opacities, features, depths, bins: TileBins, num_cams, w, h):
-    """Run the kernel. Returns ``[C, H, W, D + 2]`` = (features, Σ w z, alpha)."""
-    out, _, _ = _Composite.apply(means2d, conics, opacities, features, depths, bins, num_cams, w, h)
-    return out
 
 
 def rasterize_cpp(
@@ -156,18 +154,17 @@ def rasterize_cpp(
     proj = project_gaussians(
         means, quats, scales, opacities, viewmats, Ks, width, height, near, far
     )
-    bins = bin_gaussians(proj, width, height, tile_size)
     num_cams = viewmats.shape[0]
-    out = _composite(
-        proj.means2d.reshape(-1, 2),
-        proj.conics.reshape(-1, 3),
+    bins = bin_gaussians(proj, num_cams, width, height, tile_size)
+    out = _Composite.apply(
+        proj.means2d,
+        proj.conics,
+        proj.depths,
         opacities,
         features,
-        proj.depths.reshape(-1),
+        (proj.extents, proj.gauss_ids),
         bins,
-        num_cams,
-        width,
-        height,
+        (num_cams, width, height),
     )
     dim = features.shape[1]
     return out[..., :dim], out[..., dim], out[..., dim + 1]

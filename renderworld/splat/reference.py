@@ -88,11 +88,12 @@ def rasterize_reference(
     pix = pixel_centres(width, height, means.dtype, means.device).reshape(-1, 2)
     feats, depths, alphas = [], [], []
     for cam in range(num_cams):
-        idx = torch.nonzero(proj.valid[cam]).squeeze(1)
-        order = idx[torch.sort(proj.depths[cam, idx].detach(), stable=True).indices]
-        m2d, con = proj.means2d[cam, order], proj.conics[cam, order]
-        colors = torch.cat([features[order], proj.depths[cam, order, None]], dim=1)
-        op = opacities[order]
+        rows = torch.nonzero(proj.cam_ids == cam).squeeze(1)  # ordered by Gaussian index
+        order = rows[torch.sort(proj.depths[rows].detach(), stable=True).indices]
+        gid = proj.gauss_ids[order]
+        m2d, con = proj.means2d[order], proj.conics[order]
+        colors = torch.cat([features[gid], proj.depths[order, None]], dim=1)
+        op = opacities[gid]
         outs, accs = [], []
         for start in range(0, pix.shape[0], pixel_chunk):
             chunk = pix[start : start + pixel_chunk]

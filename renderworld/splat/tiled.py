@@ -79,8 +79,8 @@ def composite_tiles(
     """Composite binned Gaussians into images.
 
     Args:
-        bins: tile intersections over flat camera–Gaussian ids ``c * N + n``.
-        means2d: [C*N, 2]; conics: [C*N, 3]; opacities: [C*N]; colors: [C*N, K] per pair.
+        bins: tile intersections over the V projected pairs.
+        means2d: [V, 2]; conics: [V, 3]; opacities: [V]; colors: [V, K] per pair.
         width, height: image size (pixels).
         chunk: Gaussians per tile per round.
 
@@ -118,7 +118,7 @@ def composite_tiles(
         slot = start + ar[None, :]  # [Ta, B]
         present = slot < counts[active, None]
         pos = torch.where(present, offsets[active, None] + slot, torch.zeros_like(slot))
-        gid = bins.gauss_ids[pos]
+        gid = bins.pair_ids[pos]
         op = torch.where(present, opacities[gid], torch.zeros((), dtype=dtype, device=device))
         args = (
             pix_u_all[active],
@@ -150,20 +150,6 @@ def composite_tiles(
     return out[:, :height, :width]
 
 
-def pair_tensors(proj, opacities, features):
-    """Flatten a projection to per-pair tensors (``c * N + n``) with colors = [features, z, 1]."""
-    num_cams, num_g = proj.valid.shape
-    feats = features.expand(num_cams, num_g, features.shape[1])
-    ones = torch.ones_like(proj.depths)[..., None]
-    colors = torch.cat([feats, proj.depths[..., None], ones], dim=-1).reshape(num_cams * num_g, -1)
-    return (
-        proj.means2d.reshape(-1, 2),
-        proj.conics.reshape(-1, 3),
-        opacities.expand(num_cams, num_g).reshape(-1),
-        colors,
-    )
-
-
 def rasterize_tiled(
     means,
     quats,
@@ -187,8 +173,12 @@ def rasterize_tiled(
     proj = project_gaussians(
         means, quats, scales, opacities, viewmats, Ks, width, height, near, far
     )
-    bins = bin_gaussians(proj, width, height, tile_size)
-    m2d, con, op, colors = pair_tensors(proj, opacities, features)
-    out = composite_tiles(bins, m2d, con, op, colors, width, height, chunk)
+    bins = bin_gaussians(proj, viewmats.shape[0], width, height, tile_size)
+    gid = proj.gauss_ids
+    ones = torch.ones_like(proj.depths)[:, None]
+    colors = torch.cat([features[gid], proj.depths[:, None], ones], dim=1)
+    out = composite_tiles(
+        bins, proj.means2d, proj.conics, opacities[gid], colors, width, height, chunk
+    )
     dim = features.shape[1]
     return out[..., :dim], out[..., dim], out[..., dim + 1]

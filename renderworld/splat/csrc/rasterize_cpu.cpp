@@ -22,13 +22,32 @@ struct Geometry {
   int64_t tiles_x, tiles_y, tile, width, height, num_g, dim;
 };
 
+// Pixels of tile (tx, ty) whose centres lie in the Gaussian's alpha >= 1/255 box: [c0, c1] x
+// [r0, r1] in tile-local coordinates (empty when c0 > c1 or r0 > r1).
 template <typename T>
-inline bool eval_alpha(T u, T v, const T* con, T op, T px, T py, T& dx, T& dy, T& power,
+inline void pixel_rect(const Geometry& g, int64_t tx, int64_t ty, T u, T v, const T* ext,
+                       int64_t& c0, int64_t& c1, int64_t& r0, int64_t& r1) {
+  const T x0 = T(tx * g.tile), y0 = T(ty * g.tile);
+  const T x1 = T(std::min((tx + 1) * g.tile, g.width) - 1);
+  const T y1 = T(std::min((ty + 1) * g.tile, g.height) - 1);
+  const T lo_x = std::max(x0, std::ceil(u - ext[0] - T(0.5)));
+  const T hi_x = std::min(x1, std::floor(u + ext[0] - T(0.5)));
+  const T lo_y = std::max(y0, std::ceil(v - ext[1] - T(0.5)));
+  const T hi_y = std::min(y1, std::floor(v + ext[1] - T(0.5)));
+  c0 = static_cast<int64_t>(lo_x) - tx * g.tile;
+  c1 = static_cast<int64_t>(hi_x) - tx * g.tile;
+  r0 = static_cast<int64_t>(lo_y) - ty * g.tile;
+  r1 = static_cast<int64_t>(hi_y) - ty * g.tile;
+}
+
+template <typename T>
+inline bool eval_alpha(T u, T v, const T* con, T op, T log_thr, T px, T py, T& dx, T& dy, T& power,
                        T& alpha, bool& clamped) {
   dx = px - u;
   dy = py - v;
   power = T(0.5) * (con[0] * dx * dx + con[2] * dy * dy) + con[1] * dx * dy;
   if (power < T(0)) power = T(0);
+  if (power > log_thr) return false;  // op * exp(-power) < 1/255 for sure: skip the exp
   T a = op * std::exp(-power);
   clamped = a > T(kAlphaMax);
   alpha = clamped ? T(kAlphaMax) : a;
@@ -36,8 +55,9 @@ inline bool eval_alpha(T u, T v, const T* con, T op, T px, T py, T& dx, T& dy, T
 }
 
 template <typename T>
-void forward_impl(const Geometry& g, const T* means2d, const T* conics, const T* opac,
-                  const T* feats, const T* depths, const int64_t* ids, const int64_t* offs,
+void forward_impl(const Geometry& g, const T* means2d, const T* conics, const T* extents,
+                  const T* depths, const int64_t* pair_gauss, const T* opac, const T* feats,
+                  const int64_t* ids, const int64_t* offs,
                   int64_t num_tiles, T* out, T* t_final, int64_t* last) {
   const int64_t P = g.tile * g.tile, K = g.dim + 2, tpc = g.tiles_x * g.tiles_y;
   at::parallel_for(0, num_tiles, 1, [&](int64_t t0, int64_t t1) {
@@ -57,17 +77,22 @@ void forward_impl(const Geometry& g, const T* means2d, const T* conics, const T*
       }
       std::fill(acc.begin(), acc.end(), T(0));
       for (int64_t j = start; j < end && alive > 0; ++j) {
-        const int64_t gid = ids[j], n = gid % g.num_g;
+        const int64_t gid = ids[j], n = pair_gauss[gid];
         const T u = means2d[2 * gid], v = means2d[2 * gid + 1], op = opac[n], z = depths[gid];
         const T* con = conics + 3 * gid;
         const T* f = feats + n * g.dim;
-        for (int64_t p = 0; p < P; ++p) {
+        const T log_thr = std::log(op * T(255)) + T(1e-6);
+        int64_t c0, c1, r0, r1;
+        pixel_rect(g, tx, ty, u, v, extents + 2 * gid, c0, c1, r0, r1);
+        for (int64_t r = r0; r <= r1; ++r)
+        for (int64_t cc = c0; cc <= c1; ++cc) {
+          const int64_t p = r * g.tile + cc;
           if (done[p]) continue;
-          const T px = T(tx * g.tile + p % g.tile) + T(0.5);
-          const T py = T(ty * g.tile + p / g.tile) + T(0.5);
+          const T px = T(tx * g.tile + cc) + T(0.5);
+          const T py = T(ty * g.tile + r) + T(0.5);
           T dx, dy, power, alpha;
           bool clamped;
-          if (!eval_alpha(u, v, con, op, px, py, dx, dy, power, alpha, clamped)) continue;
+          if (!eval_alpha(u, v, con, op, log_thr, px, py, dx, dy, power, alpha, clamped)) continue;
           const T next = trans[p] * (T(1) - alpha);
           if (next <= T(kTMin)) {
             done[p] = 1;
@@ -98,8 +123,9 @@ void forward_impl(const Geometry& g, const T* means2d, const T* conics, const T*
 
 // grad row layout per intersection: [u, v, conic a, b, c, opacity, depth, features...].
 template <typename T>
-void backward_impl(const Geometry& g, const T* means2d, const T* conics, const T* opac,
-                   const T* feats, const T* depths, const int64_t* ids, const int64_t* offs,
+void backward_impl(const Geometry& g, const T* means2d, const T* conics, const T* extents,
+                   const T* depths, const int64_t* pair_gauss, const T* opac, const T* feats,
+                   const int64_t* ids, const int64_t* offs,
                    int64_t num_tiles, const T* gout, const T* t_final, const int64_t* last,
                    T* grows) {
   const int64_t P = g.tile * g.tile, K = g.dim + 2, R = 7 + g.dim, tpc = g.tiles_x * g.tiles_y;
@@ -128,18 +154,23 @@ void backward_impl(const Geometry& g, const T* means2d, const T* conics, const T
         galpha[p] = go[g.dim + 1];
       }
       for (int64_t j = jmax - 1; j >= start; --j) {
-        const int64_t gid = ids[j], n = gid % g.num_g;
+        const int64_t gid = ids[j], n = pair_gauss[gid];
         const T u = means2d[2 * gid], v = means2d[2 * gid + 1], op = opac[n], z = depths[gid];
         const T* con = conics + 3 * gid;
         const T* f = feats + n * g.dim;
+        const T log_thr = std::log(op * T(255)) + T(1e-6);
+        int64_t c0, c1, r0, r1;
+        pixel_rect(g, tx, ty, u, v, extents + 2 * gid, c0, c1, r0, r1);
         std::fill(row.begin(), row.end(), T(0));
-        for (int64_t p = 0; p < P; ++p) {
+        for (int64_t r = r0; r <= r1; ++r)
+        for (int64_t cc = c0; cc <= c1; ++cc) {
+          const int64_t p = r * g.tile + cc;
           if (j >= lst[p]) continue;
-          const T px = T(tx * g.tile + p % g.tile) + T(0.5);
-          const T py = T(ty * g.tile + p / g.tile) + T(0.5);
+          const T px = T(tx * g.tile + cc) + T(0.5);
+          const T py = T(ty * g.tile + r) + T(0.5);
           T dx, dy, power, alpha;
           bool clamped;
-          if (!eval_alpha(u, v, con, op, px, py, dx, dy, power, alpha, clamped)) continue;
+          if (!eval_alpha(u, v, con, op, log_thr, px, py, dx, dy, power, alpha, clamped)) continue;
           const T ra = T(1) / (T(1) - alpha);
           trans[p] *= ra;  // transmittance in front of Gaussian j
           const T w = alpha * trans[p];
@@ -177,8 +208,9 @@ Geometry make_geometry(int64_t tiles_x, int64_t tiles_y, int64_t tile, int64_t w
 }  // namespace
 
 std::vector<torch::Tensor> splat_forward(torch::Tensor means2d, torch::Tensor conics,
-                                         torch::Tensor opac, torch::Tensor feats,
-                                         torch::Tensor depths, torch::Tensor ids,
+                                         torch::Tensor extents, torch::Tensor depths,
+                                         torch::Tensor pair_gauss, torch::Tensor opac,
+                                         torch::Tensor feats, torch::Tensor ids,
                                          torch::Tensor offs, int64_t num_cams, int64_t tiles_x,
                                          int64_t tiles_y, int64_t tile, int64_t width,
                                          int64_t height) {
@@ -190,16 +222,20 @@ std::vector<torch::Tensor> splat_forward(torch::Tensor means2d, torch::Tensor co
   const int64_t num_tiles = offs.size(0) - 1;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "splat_forward", [&] {
     forward_impl<scalar_t>(g, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                           extents.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
+                           pair_gauss.data_ptr<int64_t>(),
                            opac.data_ptr<scalar_t>(), feats.data_ptr<scalar_t>(),
-                           depths.data_ptr<scalar_t>(), ids.data_ptr<int64_t>(),
+                           ids.data_ptr<int64_t>(),
                            offs.data_ptr<int64_t>(), num_tiles, out.data_ptr<scalar_t>(),
                            t_final.data_ptr<scalar_t>(), last.data_ptr<int64_t>());
   });
   return {out, t_final, last};
 }
 
-torch::Tensor splat_backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
-                             torch::Tensor feats, torch::Tensor depths, torch::Tensor ids,
+torch::Tensor splat_backward(torch::Tensor means2d, torch::Tensor conics,
+                             torch::Tensor extents, torch::Tensor depths,
+                             torch::Tensor pair_gauss, torch::Tensor opac, torch::Tensor feats,
+                             torch::Tensor ids,
                              torch::Tensor offs, int64_t tiles_x, int64_t tiles_y, int64_t tile,
                              int64_t width, int64_t height, torch::Tensor gout,
                              torch::Tensor t_final, torch::Tensor last) {
@@ -208,8 +244,10 @@ torch::Tensor splat_backward(torch::Tensor means2d, torch::Tensor conics, torch:
   const int64_t num_tiles = offs.size(0) - 1;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "splat_backward", [&] {
     backward_impl<scalar_t>(g, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                           extents.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
+                           pair_gauss.data_ptr<int64_t>(),
                             opac.data_ptr<scalar_t>(), feats.data_ptr<scalar_t>(),
-                            depths.data_ptr<scalar_t>(), ids.data_ptr<int64_t>(),
+                            ids.data_ptr<int64_t>(),
                             offs.data_ptr<int64_t>(), num_tiles, gout.data_ptr<scalar_t>(),
                             t_final.data_ptr<scalar_t>(), last.data_ptr<int64_t>(),
                             grows.data_ptr<scalar_t>());
