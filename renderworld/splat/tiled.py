@@ -145,6 +145,8 @@ def composite_tiles(
     out = torch.zeros(num_tiles, ts * ts, k_dim, dtype=dtype, device=device)
     if ids:
         out = out.index_add(0, torch.cat(ids), torch.cat(contribs))
+    elif grad:  # nothing visible: keep the (zero) outputs connected to the inputs' graph
+        out = out + 0.0 * sum(t.sum() for t in (means2d, conics, opacities, colors))
     out = out.reshape(num_cams, bins.tiles_y, bins.tiles_x, ts, ts, k_dim)
     out = out.permute(0, 1, 3, 2, 4, 5).reshape(num_cams, bins.tiles_y * ts, bins.tiles_x * ts, -1)
     return out[:, :height, :width]
