@@ -25,8 +25,17 @@ from renderworld.splat.tiled import TILE_SIZE
 __all__ = ["cpp_available", "load_extension", "rasterize_cpp"]
 
 _SOURCE = Path(__file__).with_name("csrc") / "rasterize_cpu.cpp"
-_FLAGS = ["-O3", "-fopenmp"]
+# -fno-trapping-math lets gcc vectorize the exp loop (float→int conversions); no code here
+# relies on floating-point traps or errno.
+_BASE_FLAGS = ["-O3", "-fopenmp", "-fno-trapping-math", "-fno-math-errno"]
 _STATE: dict = {}
+
+
+def _flags() -> list[str]:
+    """Compiler flags: AVX2 + FMA when torch reports this CPU supports them (key of the cache)."""
+    capability = torch.backends.cpu.get_cpu_capability()
+    isa = ["-mavx2", "-mfma"] if capability in ("AVX2", "AVX512") else []
+    return _BASE_FLAGS + isa
 
 
 def _cache_root() -> Path:
@@ -43,7 +52,8 @@ def load_extension():
     if "module" in _STATE:
         return _STATE["module"]
     source = _SOURCE.read_text()
-    key = hashlib.sha256((source + str(_FLAGS) + torch.__version__).encode()).hexdigest()[:16]
+    flags = _flags()
+    key = hashlib.sha256((source + str(flags) + torch.__version__).encode()).hexdigest()[:16]
     build_dir = _cache_root() / key
     try:
         from torch.utils.cpp_extension import load_inline
@@ -53,7 +63,7 @@ def load_extension():
             name=f"renderworld_splat_{key}",
             cpp_sources=[source],
             functions=["splat_forward", "splat_backward"],
-            extra_cflags=_FLAGS,
+            extra_cflags=flags,
             extra_ldflags=["-fopenmp"],
             build_directory=str(build_dir),
             verbose=False,
