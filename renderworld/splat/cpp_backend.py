@@ -12,6 +12,7 @@ says why once, and ``backend="auto"`` falls back to ``torch``.
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import warnings
 from pathlib import Path
@@ -29,6 +30,7 @@ _SOURCE = Path(__file__).with_name("csrc") / "rasterize_cpu.cpp"
 # relies on floating-point traps or errno.
 _BASE_FLAGS = ["-O3", "-fopenmp", "-fno-trapping-math", "-fno-math-errno"]
 _STATE: dict = {}
+_LOG = logging.getLogger(__name__)
 
 
 def _flags() -> list[str]:
@@ -59,6 +61,8 @@ def load_extension():
         from torch.utils.cpp_extension import load_inline
 
         build_dir.mkdir(parents=True, exist_ok=True)
+        if not any(build_dir.glob("*.so")):
+            _LOG.info("compiling the C++ rasterizer kernel into %s (once, ~30-60 s)", build_dir)
         module = load_inline(
             name=f"renderworld_splat_{key}",
             cpp_sources=[source],

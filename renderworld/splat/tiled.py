@@ -1,8 +1,9 @@
 """Tiled rasterizer in pure torch (the ``torch`` backend, twin and oracle of the ``cpp`` kernel).
 
 Pipeline: EWA projection (:mod:`projection`) → cull → bin to tiles by the opacity-aware box
-(:mod:`binning`) → composite every tile's depth-sorted list in chunks of ``chunk`` Gaussians,
-all tiles of a round at once. A tile leaves the loop when its list is exhausted or all its
+(:mod:`binning`) → composite every tile's depth-sorted list in chunks of Gaussians, all tiles of
+a round at once; the first chunk has ``chunk`` Gaussians and each next one twice as many (up to
+``8 * chunk``), so tiles that terminate early pay little and long lists take few rounds. A tile leaves the loop when its list is exhausted or all its
 pixels terminated (transmittance would fall to <= TRANSMITTANCE_MIN). Each round is
 checkpointed when gradients are needed, so autograd memory is bounded by the round outputs
 instead of every pixel–Gaussian pair.
@@ -82,7 +83,7 @@ def composite_tiles(
         bins: tile intersections over the V projected pairs.
         means2d: [V, 2]; conics: [V, 3]; opacities: [V]; colors: [V, K] per pair.
         width, height: image size (pixels).
-        chunk: Gaussians per tile per round.
+        chunk: Gaussians per tile in the first round (doubling each round, up to 8x).
 
     Returns:
         [C, H, W, K] ``Σ w_i colors_i``.
@@ -109,13 +110,13 @@ def composite_tiles(
 
     ids, contribs = [], []
     active = torch.nonzero(counts > 0).squeeze(1)
-    ar = torch.arange(chunk, device=device)
+    step = chunk
     start = 0
     grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (means2d, conics, opacities, colors)
     )
     while active.numel() > 0:
-        slot = start + ar[None, :]  # [Ta, B]
+        slot = start + torch.arange(step, device=device)[None, :]  # [Ta, B]
         present = slot < counts[active, None]
         pos = torch.where(present, offsets[active, None] + slot, torch.zeros_like(slot))
         gid = bins.pair_ids[pos]
@@ -138,7 +139,8 @@ def composite_tiles(
         contribs.append(contrib)
         log_t_all = log_t_all.index_copy(0, active, log_t1)
         done_all = done_all.index_copy(0, active, done1)
-        start += chunk
+        start += step
+        step = min(2 * step, 8 * chunk)
         alive = (counts[active] > start) & ~done1.all(1)
         active = active[alive]
 

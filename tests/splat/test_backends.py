@@ -47,7 +47,7 @@ def test_matches_reference_on_random_scene(impl, seed):
 
 
 @pytest.mark.parametrize("impl", FAST_IMPLS)
-@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     n=st.integers(1, 60),
     dim=st.integers(1, 6),
