@@ -3,10 +3,11 @@
 Pipeline: EWA projection (:mod:`projection`) → cull → bin to tiles by the opacity-aware box
 (:mod:`binning`) → composite every tile's depth-sorted list in chunks of Gaussians, all tiles of
 a round at once; the first chunk has ``chunk`` Gaussians and each next one twice as many (up to
-``8 * chunk``), so tiles that terminate early pay little and long lists take few rounds. A tile leaves the loop when its list is exhausted or all its
-pixels terminated (transmittance would fall to <= TRANSMITTANCE_MIN). Each round is
+``8 * chunk``), so tiles that terminate early pay little and long lists take few rounds. A tile
+leaves the loop when its list is exhausted or all its pixels terminated (transmittance would
+fall to <= TRANSMITTANCE_MIN). Transmittance is accumulated in log space. Each round is
 checkpointed when gradients are needed, so autograd memory is bounded by the round outputs
-instead of every pixel–Gaussian pair.
+instead of every pixel–Gaussian pair (recomputing a round in backward is the price).
 """
 
 from __future__ import annotations
