@@ -12,11 +12,12 @@ fx, fy, cx scale by s and cy becomes s·cy - (round(900 s) - H).
 
 Per configuration (backend, N, H x W), in a fresh subprocess: median wall time of the forward
 (inputs requiring grad, as in training) and of forward + backward (loss = sum of all outputs),
-after one warm-up; peak memory as the growth of the process' max RSS over its state after set-up
-(forward alone, then forward + backward); tile–Gaussian intersections and the pixel–Gaussian
-pairs they stand for (intersections x tile pixels, what a 16-px tiled rasterizer considers);
-forward pairs/s against the machine's torch.exp throughput measured in the same run (float32,
-same thread count), and speed ratios against the dense reference where it ran.
+after one warm-up, and the process CPU time of the same calls (all threads; a load-independent
+figure on a shared machine); peak memory as the growth of the process' max RSS over its state
+after set-up (forward alone, then forward + backward); tile–Gaussian intersections and the
+pixel–Gaussian pairs they stand for (intersections x tile pixels, what a 16-px tiled rasterizer
+considers); forward pairs/s against the machine's torch.exp throughput measured in the same
+run (float32, same thread count), and speed ratios against the dense reference where it ran.
 
 Usage:
     PYTHONPATH=. python benchmarks/bench_splat.py [--quick] [--out results.csv]
@@ -169,19 +170,21 @@ def run_child(backend: str, n: int, height: int, width: int, repeats: int) -> di
 
     base = _maxrss_mb()
     forward()  # warm-up (and the forward peak)
-    fwd = []
+    fwd, fwd_cpu = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         r = forward()
         fwd.append(time.perf_counter() - t0)
+        fwd_cpu.append(time.process_time() - c0)
         del r
     fwd_peak = _maxrss_mb() - base
     forward_backward()
-    both = []
+    both, both_cpu = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         forward_backward()
         both.append(time.perf_counter() - t0)
+        both_cpu.append(time.process_time() - c0)
     return {
         "status": "ok",
         "visible_pairs": len(proj),
@@ -189,6 +192,8 @@ def run_child(backend: str, n: int, height: int, width: int, repeats: int) -> di
         "pairs": isect * 16 * 16,
         "fwd_s": statistics.median(fwd),
         "fwdbwd_s": statistics.median(both),
+        "fwd_cpu_s": statistics.median(fwd_cpu),
+        "fwdbwd_cpu_s": statistics.median(both_cpu),
         "fwd_peak_mb": fwd_peak,
         "fwdbwd_peak_mb": _maxrss_mb() - base,
     }
@@ -275,7 +280,8 @@ def _print_row(row: dict) -> None:
         print(f"{head} {row.get('status')}")
         return
     text = (
-        f"{head} fwd {row['fwd_s'] * 1e3:9.1f} ms  fwd+bwd {row['fwdbwd_s'] * 1e3:9.1f} ms  "
+        f"{head} fwd {row['fwd_s'] * 1e3:8.1f} ms  fwd+bwd {row['fwdbwd_s'] * 1e3:8.1f} ms "
+        f"(cpu {row['fwdbwd_cpu_s'] * 1e3:8.1f} ms)  "
         f"peak +{row['fwd_peak_mb']:7.0f}/{row['fwdbwd_peak_mb']:7.0f} MB  "
         f"isect {row['isect']:>9}  pairs/s {row['fwd_pairs_per_s'] / 1e9:6.2f} G "
         f"({100 * row['fwd_vs_exp']:5.1f}% of exp)"
