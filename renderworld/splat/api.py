@@ -113,7 +113,14 @@ def rasterize(
     low-pass; alpha = min(0.99, opacity·exp(-½ dᵀΣ'⁻¹d)), pairs with alpha < 1/255 skipped,
     front to back by camera z, a pixel stops before transmittance would reach 1e-4. Gaussian
     activations (bounded scales, sigmoid opacities, normalised quaternions) are the caller's
-    job; raw extreme values still render finitely.
+    job; raw extreme values still render finitely. Gaussians with a non-finite projection (NaN
+    or infinite inputs) are culled like those outside the frustum.
+
+    Backends agree to float rounding (``torch`` and ``cpp`` match ``reference`` to 1e-5 in
+    float64): the CPU backends bound each Gaussian by the exact box where its alpha reaches
+    1/255, so tiling never changes the image. ``cpp`` accumulates transmittance as a product,
+    ``reference`` and ``torch`` in log space; ``gsplat`` differs slightly (3σ bound, see
+    :mod:`renderworld.splat.gsplat_backend`).
 
     Args:
         means: [N, 3] centres, world frame (metres).
