@@ -84,8 +84,7 @@ def _tiny_scene():
     return [means, quats, scales, opacities, features]
 
 
-@pytest.mark.parametrize("impl", ALL_IMPLS)
-def test_gradcheck_tiny_scene(impl):
+def _gradcheck(impl, fast_mode):
     viewmats, Ks = look_at_cameras(1)
     Ks = Ks.clone()
     Ks[:, :2] /= 4.0  # a 10 x 8 image keeps gradcheck quick
@@ -95,7 +94,18 @@ def test_gradcheck_tiny_scene(impl):
         r = rasterize(*ps, viewmats, Ks, 10, 8, backend=impl)
         return r.features, r.depth, r.alpha
 
-    assert torch.autograd.gradcheck(fn, params, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
+    return torch.autograd.gradcheck(fn, params, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=fast_mode)
+
+
+@pytest.mark.parametrize("impl", ALL_IMPLS)
+def test_gradcheck_tiny_scene(impl):
+    assert _gradcheck(impl, fast_mode=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("impl", ALL_IMPLS)
+def test_gradcheck_tiny_scene_full_jacobian(impl):
+    assert _gradcheck(impl, fast_mode=False)
 
 
 @pytest.mark.parametrize("impl", ALL_IMPLS)
