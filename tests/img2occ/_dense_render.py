@@ -56,8 +56,7 @@ def dense_rasterize(
         zc = z.clamp_min(near)
         u = fx * pc[:, 0] / zc + cx
         v = fy * pc[:, 1] / zc + cy
-        keep = (z > near) & (z < far)
-        keep &= (u > -0.5 * width) & (u < 1.5 * width) & (v > -0.5 * height) & (v < 1.5 * height)
+        keep = (z > near) & (z < far)  # no image-box culling: near Gaussians cover the image
         idx = torch.nonzero(keep.detach())[:, 0]
         if idx.numel() == 0:
             zero = (means.sum() + features.sum() + opacities.sum() + scales.sum()) * 0

@@ -12,6 +12,17 @@ INPUT_SIZE = (48, 88)
 RENDER_SIZE = (18, 32)
 
 
+def make_model(backend: str = "torch", **overrides):
+    """A tiny Img2Occ rendering with ``renderworld.splat.rasterize(backend=...)``, or with
+    the tests' dense stand-in when ``backend == "dense"``."""
+    from renderworld.img2occ import Img2Occ
+    from tests.img2occ._dense_render import dense_rasterize
+
+    if backend == "dense":
+        return Img2Occ(tiny_config(**overrides), render_fn=dense_rasterize)
+    return Img2Occ(tiny_config(render_backend=backend, **overrides))
+
+
 def tiny_config(**overrides) -> Img2OccConfig:
     """A model small enough for CPU unit tests on the 16x16x4 test grid."""
     kw = dict(

@@ -14,8 +14,7 @@ import torch
 from renderworld.constants import FREE_ID
 from renderworld.img2occ import Img2Occ
 from renderworld.img2occ.readout import choose_threshold, confusion_matrix, miou_from_confusion
-from tests.img2occ._dense_render import dense_rasterize
-from tests.img2occ.conftest import tiny_config
+from tests.img2occ.conftest import make_model
 
 
 def _miou(model, batch) -> float:
@@ -36,7 +35,7 @@ def _train(batch, steps: int) -> tuple[Img2Occ, float, float]:
     torch.manual_seed(0)
     # depth_l1_weight: Pearson alone cannot tell a half-opaque veil of air Gaussians from the
     # surface behind it (it is blind to affine depth changes); see Img2OccConfig.
-    model = Img2Occ(tiny_config(depth_l1_weight=2.0), render_fn=dense_rasterize)
+    model = make_model("torch", depth_l1_weight=2.0)
     start = _miou(model, batch)
     opt = torch.optim.Adam(model.parameters(), lr=1e-2)
     model.train()

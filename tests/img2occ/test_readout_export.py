@@ -7,7 +7,6 @@ import pytest
 import torch
 
 from renderworld.constants import FREE_ID
-from renderworld.img2occ import Img2Occ
 from renderworld.img2occ.export import export_occupancy
 from renderworld.img2occ.readout import (
     ThresholdSearch,
@@ -17,9 +16,8 @@ from renderworld.img2occ.readout import (
     miou_from_confusion,
 )
 from renderworld.img2occ.viz import draw_views
-from tests.img2occ._dense_render import dense_rasterize
 from tests.img2occ._synthetic import TEST_GRID
-from tests.img2occ.conftest import tiny_config
+from tests.img2occ.conftest import make_model
 
 
 def test_confusion_and_miou_by_hand():
@@ -56,7 +54,7 @@ def test_threshold_search_finds_the_separating_threshold():
 
 
 def test_choose_threshold_stores_into_model(synthetic_batch):
-    model = Img2Occ(tiny_config(), render_fn=dense_rasterize)
+    model = make_model()
     t, scores = choose_threshold(model, [synthetic_batch, synthetic_batch])
     assert model.occupancy_threshold.item() == pytest.approx(t)
     assert t in scores and model.training  # restored mode
@@ -84,7 +82,7 @@ def test_export_writes_occ3d_layout_labels(synthetic_batch, tmp_path):
     data = pytest.importorskip(
         "renderworld.data", reason="renderworld.data (Occ3D label io) is not on this branch"
     )
-    model = Img2Occ(tiny_config(), render_fn=dense_rasterize)
+    model = make_model()
     model.set_threshold(0.09)  # near the initial opacities: a mix of occupied and free
     items = _items(synthetic_batch, ["tok0a", "tok1b", "tok2c"])
     # mixed items cannot share a batch (missing keys), so export one at a time
@@ -111,7 +109,7 @@ def test_export_writes_occ3d_layout_labels(synthetic_batch, tmp_path):
 
 def test_export_rejects_unsafe_names(synthetic_batch, tmp_path):
     pytest.importorskip("renderworld.data", reason="renderworld.data is not on this branch")
-    model = Img2Occ(tiny_config(), render_fn=dense_rasterize)
+    model = make_model()
     items = _items(synthetic_batch, ["../../etc"])
     with pytest.raises(ValueError, match="meta.sample_token"):
         export_occupancy(model, items, tmp_path, progress=False)
@@ -122,7 +120,7 @@ def test_export_rejects_unsafe_names(synthetic_batch, tmp_path):
 def test_draw_views_writes_png(synthetic_batch, tmp_path):
     from PIL import Image
 
-    model = Img2Occ(tiny_config(), render_fn=dense_rasterize)
+    model = make_model()
     model.eval()
     with torch.no_grad():
         out = model(synthetic_batch)
