@@ -2,6 +2,7 @@
 
 from renderworld.img2occ.config import Img2OccConfig
 from renderworld.img2occ.encoder import ImageEncoder
+from renderworld.img2occ.export import export_occupancy
 from renderworld.img2occ.head import AnchorGaussians, GaussianHead
 from renderworld.img2occ.lifting import LiftResult, lift_features
 from renderworld.img2occ.losses import (
@@ -12,7 +13,15 @@ from renderworld.img2occ.losses import (
     semantic_nll_loss,
 )
 from renderworld.img2occ.model import Img2Occ, Img2OccOutput, readout_occupancy
+from renderworld.img2occ.readout import (
+    ThresholdSearch,
+    choose_threshold,
+    confusion_matrix,
+    geometry_iou_from_confusion,
+    miou_from_confusion,
+)
 from renderworld.img2occ.render import RenderedViews, render_views
+from renderworld.img2occ.viz import colorize_semantics, draw_views
 
 __all__ = [
     "IGNORE_LABEL",
@@ -24,6 +33,14 @@ __all__ = [
     "Img2OccOutput",
     "LiftResult",
     "RenderedViews",
+    "ThresholdSearch",
+    "choose_threshold",
+    "colorize_semantics",
+    "confusion_matrix",
+    "draw_views",
+    "export_occupancy",
+    "geometry_iou_from_confusion",
+    "miou_from_confusion",
     "lift_features",
     "pearson_depth_loss",
     "readout_occupancy",
