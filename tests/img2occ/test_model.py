@@ -140,7 +140,7 @@ def test_everything_pruned_still_trains(synthetic_batch):
     model = _model(prune_opacity=0.99)
     out = model(synthetic_batch)
     assert out.views.num_rendered.tolist() == [0]
-    assert float(out.views.alpha.abs().sum()) == 0.0
+    assert out.views.alpha.abs().sum().item() == 0.0
     loss, _ = model.loss(synthetic_batch, out)
     assert torch.isfinite(loss) and loss.requires_grad
     loss.backward()
