@@ -1,0 +1,51 @@
+"""Img2Occ (paper §6.2.1): semantic Gaussians anchored in voxels, trained from 2-D labels."""
+
+from renderworld.img2occ.config import Img2OccConfig
+from renderworld.img2occ.encoder import ImageEncoder
+from renderworld.img2occ.export import export_occupancy
+from renderworld.img2occ.head import AnchorGaussians, GaussianHead
+from renderworld.img2occ.lifting import LiftResult, lift_features
+from renderworld.img2occ.losses import (
+    IGNORE_LABEL,
+    pearson_depth_loss,
+    relative_depth_l1_loss,
+    rendered_distribution,
+    semantic_nll_loss,
+)
+from renderworld.img2occ.model import Img2Occ, Img2OccOutput, readout_occupancy
+from renderworld.img2occ.readout import (
+    ThresholdSearch,
+    choose_threshold,
+    confusion_matrix,
+    geometry_iou_from_confusion,
+    miou_from_confusion,
+)
+from renderworld.img2occ.render import RenderedViews, render_views
+from renderworld.img2occ.viz import colorize_semantics, draw_views
+
+__all__ = [
+    "IGNORE_LABEL",
+    "AnchorGaussians",
+    "GaussianHead",
+    "ImageEncoder",
+    "Img2Occ",
+    "Img2OccConfig",
+    "Img2OccOutput",
+    "LiftResult",
+    "RenderedViews",
+    "ThresholdSearch",
+    "choose_threshold",
+    "colorize_semantics",
+    "confusion_matrix",
+    "draw_views",
+    "export_occupancy",
+    "geometry_iou_from_confusion",
+    "miou_from_confusion",
+    "lift_features",
+    "pearson_depth_loss",
+    "readout_occupancy",
+    "relative_depth_l1_loss",
+    "render_views",
+    "rendered_distribution",
+    "semantic_nll_loss",
+]

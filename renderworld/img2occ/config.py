@@ -1,0 +1,170 @@
+"""Configuration of the Img2Occ model (paper Section 6.2.1).
+
+Every accuracy knob (grid, image and render sizes, channels, views rendered per step, pruning
+threshold, adjacent-frame supervision, loss weights) is a field here, validated on
+construction with ``ValueError`` messages that name the field (DESIGN.md §6, §7).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from renderworld.constants import GridSpec, get_grid
+
+__all__ = ["Img2OccConfig"]
+
+
+def _positive_int(name: str, value) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise ValueError(f"{name}: expected a positive int, got {value!r}")
+
+
+def _size(name: str, value) -> tuple[int, int]:
+    if not isinstance(value, (tuple, list)) or len(value) != 2:
+        raise ValueError(f"{name}: expected (height, width), got {value!r}")
+    for v in value:
+        _positive_int(name, v)
+    return (int(value[0]), int(value[1]))
+
+
+@dataclass
+class Img2OccConfig:
+    """Img2Occ hyper-parameters.
+
+    Attributes:
+        grid: the voxel grid, a :class:`GridSpec` or a name in ``renderworld.constants.GRIDS``
+            (default ``"coarse"``, 50x50x4 over the Occ3D range). Resolved to a GridSpec.
+        input_size: (H_in, W_in) of the images the encoder sees, pixels; divisible by
+            ``feature_stride``.
+        render_size: (H_r, W_r) of the rendered / label maps, pixels.
+        encoder_channels: channels of the CNN stages at strides 2, 4, 8, 16, ...; stages
+            at and below ``feature_stride`` are merged top-down (FPN-like) into the output.
+        feature_stride: 8 or 16, stride of the FPN-merged feature map.
+        feature_channels: D, channels of the image features lifted into the voxels.
+        timm_backbone: optional timm model name used instead of the CNN (needs timm).
+        timm_weights: local file with that backbone's state dict (never downloaded); needs
+            ``timm_backbone``.
+        head_channels: channels of the BEV head (height folded into channels).
+        head_blocks: residual 3x3 blocks in the BEV head.
+        lift_near: voxels closer than this camera z (metres) are not seen by that camera.
+        scale_range: (s_min, s_max) Gaussian scales as fractions of the smallest voxel edge
+            (GaussianFormer's [0.08, 0.32] m at 0.4 m voxels is (0.2, 0.8)).
+        init_opacity: opacity of every Gaussian at initialisation (head bias).
+        views_per_step: cameras rendered per sample while training (a random subset of the
+            C cameras; ``None`` renders all). Evaluation renders all.
+        prune_opacity: Gaussians with opacity <= this are not rendered (selection detached).
+            1/255 is lossless: the rasterizer skips alpha < 1/255 and alpha <= opacity.
+            0 disables pruning.
+        adjacent_frames: supervise with the neighbouring keyframes' cameras (``adj_*`` batch
+            fields) when present.
+        adjacent_views_per_step: adjacent views rendered per sample while training (``None``
+            = all).
+        semantic_weight: weight of the rendered-semantics cross-entropy.
+        depth_weight: weight of the Pearson depth loss.
+        depth_l1_weight: weight of an absolute relative-depth L1 term, mean of
+            |d_rendered - d_lidar| / d_lidar over LiDAR pixels. Not in the paper (0 = paper):
+            Pearson correlation is blind to an affine change of depth, so it cannot tell a
+            veil of half-opaque "air" Gaussians in front of a surface from the surface itself;
+            this term can (see the overfitting test).
+        adjacent_weight: weight of the adjacent-frame losses relative to the keyframe's.
+        near: rasterizer near plane, metres (camera z).
+        far: rasterizer far plane, metres.
+        render_backend: the rasterizer backend ("auto", "reference", "torch", "gsplat").
+        occupancy_threshold: initial opacity threshold of the readout (``choose_threshold``
+            replaces it; it is stored in the model's state).
+        prob_eps: epsilon inside the log of the rendered class distribution.
+    """
+
+    grid: GridSpec | str = "coarse"
+    input_size: tuple[int, int] = (256, 704)
+    render_size: tuple[int, int] = (225, 400)
+    encoder_channels: tuple[int, ...] = (32, 64, 128, 128)
+    feature_stride: int = 8
+    feature_channels: int = 64
+    timm_backbone: str | None = None
+    timm_weights: str | None = None
+    head_channels: int = 128
+    head_blocks: int = 2
+    lift_near: float = 0.1
+    scale_range: tuple[float, float] = (0.2, 0.8)
+    init_opacity: float = 0.1
+    views_per_step: int | None = 3
+    prune_opacity: float = 1.0 / 255.0
+    adjacent_frames: bool = False
+    adjacent_views_per_step: int | None = 3
+    semantic_weight: float = 1.0
+    depth_weight: float = 1.0
+    depth_l1_weight: float = 0.0
+    adjacent_weight: float = 0.5
+    near: float = 0.1
+    far: float = 100.0
+    render_backend: str = "auto"
+    occupancy_threshold: float = 0.5
+    prob_eps: float = 1e-6
+
+    def __post_init__(self) -> None:
+        if isinstance(self.grid, str):
+            self.grid = get_grid(self.grid)
+        if not isinstance(self.grid, GridSpec):
+            raise ValueError(f"grid: expected a GridSpec or a grid name, got {self.grid!r}")
+        self.input_size = _size("input_size", self.input_size)
+        self.render_size = _size("render_size", self.render_size)
+        if self.feature_stride not in (8, 16):
+            raise ValueError(f"feature_stride: expected 8 or 16, got {self.feature_stride!r}")
+        if any(v % self.feature_stride for v in self.input_size):
+            raise ValueError(
+                f"input_size: expected sizes divisible by feature_stride {self.feature_stride} "
+                f"(the stride-2 convs then keep pixel centres aligned), got {self.input_size}"
+            )
+        need = 3 if self.feature_stride == 8 else 4
+        if not isinstance(self.encoder_channels, (tuple, list)) or len(self.encoder_channels) < (
+            need
+        ):
+            raise ValueError(
+                f"encoder_channels: expected at least {need} stage widths for feature_stride "
+                f"{self.feature_stride}, got {self.encoder_channels!r}"
+            )
+        self.encoder_channels = tuple(self.encoder_channels)
+        for c in self.encoder_channels:
+            _positive_int("encoder_channels", c)
+        for name in ("feature_channels", "head_channels"):
+            _positive_int(name, getattr(self, name))
+        if isinstance(self.head_blocks, bool) or not isinstance(self.head_blocks, int):
+            raise ValueError(f"head_blocks: expected an int >= 0, got {self.head_blocks!r}")
+        if self.head_blocks < 0:
+            raise ValueError(f"head_blocks: expected an int >= 0, got {self.head_blocks!r}")
+        if self.timm_weights is not None and self.timm_backbone is None:
+            raise ValueError("timm_weights: given without timm_backbone (name the timm model)")
+        lo_hi = tuple(float(v) for v in self.scale_range)
+        if len(lo_hi) != 2 or not (0 < lo_hi[0] < lo_hi[1]):
+            raise ValueError(f"scale_range: expected 0 < s_min < s_max, got {self.scale_range!r}")
+        self.scale_range = lo_hi
+        for name in ("init_opacity", "occupancy_threshold"):
+            v = getattr(self, name)
+            if not (0.0 < float(v) < 1.0):
+                raise ValueError(f"{name}: expected a value in (0, 1), got {v!r}")
+        if not (0.0 <= float(self.prune_opacity) < 1.0):
+            raise ValueError(
+                f"prune_opacity: expected a value in [0, 1), got {self.prune_opacity!r}"
+            )
+        for name in ("views_per_step", "adjacent_views_per_step"):
+            v = getattr(self, name)
+            if v is not None:
+                _positive_int(name, v)
+        for name in ("semantic_weight", "depth_weight", "depth_l1_weight", "adjacent_weight"):
+            v = getattr(self, name)
+            if not (math.isfinite(float(v)) and float(v) >= 0):
+                raise ValueError(f"{name}: expected a finite weight >= 0, got {v!r}")
+        if not (0 < self.near < self.far):
+            raise ValueError(f"near/far: expected 0 < near < far, got {self.near}, {self.far}")
+        if not (self.lift_near > 0):
+            raise ValueError(f"lift_near: expected > 0 metres, got {self.lift_near!r}")
+        if not (0 < self.prob_eps < 1e-2):
+            raise ValueError(f"prob_eps: expected a value in (0, 0.01), got {self.prob_eps!r}")
+
+    @property
+    def feature_size(self) -> tuple[int, int]:
+        """(h, w) of the lifted feature map: input size / feature_stride."""
+        h, w = self.input_size
+        return (h // self.feature_stride, w // self.feature_stride)

@@ -1,0 +1,277 @@
+"""The Img2Occ model: images → voxel-anchored semantic Gaussians → rendered views → losses.
+
+``forward(batch)`` encodes the C images, lifts their features into the voxel grid, predicts
+one Gaussian per voxel and (unless ``render=False``) renders class probabilities and depth
+into the cameras (a random subset of them while training). ``loss(batch, output)`` compares
+those renders with the LiDAR-projected 2-D labels; ``readout(output)`` gives the 3-D
+occupancy with the threshold stored in the model's state (``occupancy_threshold`` buffer).
+Batches follow the ``Img2OccDataset`` item format (briefs/batch_formats.md), stacked on B.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from renderworld.constants import FREE_ID
+from renderworld.geometry import VoxelGrid, scale_intrinsics
+from renderworld.img2occ.config import Img2OccConfig
+from renderworld.img2occ.encoder import ImageEncoder
+from renderworld.img2occ.head import AnchorGaussians, GaussianHead
+from renderworld.img2occ.lifting import lift_features
+from renderworld.img2occ.losses import (
+    pearson_depth_loss,
+    relative_depth_l1_loss,
+    semantic_nll_loss,
+)
+from renderworld.img2occ.render import RenderedViews, render_views
+
+__all__ = ["Img2Occ", "Img2OccOutput", "readout_occupancy"]
+
+_KEY_INPUTS = ("images", "intrinsics", "cam_to_ego")
+_KEY_TARGETS = ("render_intrinsics", "depth", "semantics")
+
+
+@dataclass
+class Img2OccOutput:
+    """What ``Img2Occ.forward`` returns.
+
+    Attributes:
+        gaussians: one Gaussian per voxel, [B, V, ...] (V = X·Y·Z, row-major [x, y, z]).
+        visibility: [B, X, Y, Z] number of cameras that see each voxel centre.
+        grid_shape: (X, Y, Z).
+        views: renders of the keyframe cameras ``view_index`` (None when not rendered).
+        view_index: [B, Cr] int64 camera indices rendered per sample (None when not rendered).
+        adj_views: renders of the adjacent-frame cameras ``adj_index`` (or None).
+        adj_index: [B, Ca] int64 (or None).
+    """
+
+    gaussians: AnchorGaussians
+    visibility: torch.Tensor
+    grid_shape: tuple[int, int, int]
+    views: RenderedViews | None = None
+    view_index: torch.Tensor | None = None
+    adj_views: RenderedViews | None = None
+    adj_index: torch.Tensor | None = None
+
+
+def readout_occupancy(
+    opacities: torch.Tensor, logits: torch.Tensor, threshold: float, grid_shape
+) -> torch.Tensor:
+    """Voxel classes: argmax of logits where opacity > threshold, else ``FREE_ID``.
+
+    Args:
+        opacities: [B, V] in (0, 1).
+        logits: [B, V, K].
+        threshold: opacity threshold.
+        grid_shape: (X, Y, Z) with X·Y·Z = V.
+
+    Returns:
+        [B, X, Y, Z] uint8 Occ3D ids (``FREE_ID`` = free).
+    """
+    cls = logits.argmax(-1)
+    out = torch.where(opacities > threshold, cls, torch.full_like(cls, FREE_ID))
+    return out.to(torch.uint8).view(opacities.shape[0], *grid_shape)
+
+
+def _gather_views(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """x [B, C, ...] → [B, Cr, ...] along dim 1."""
+    idx = index.to(x.device).view(*index.shape, *([1] * (x.ndim - 2)))
+    return torch.gather(x, 1, idx.expand(*index.shape, *x.shape[2:]))
+
+
+class Img2Occ(nn.Module):
+    """Semantic Gaussians anchored in voxels, supervised by rendered 2-D labels.
+
+    Args:
+        cfg: :class:`Img2OccConfig` (default config when None).
+        render_fn: rasterizer with ``renderworld.splat.rasterize``'s signature; default that
+            function, imported on first use.
+    """
+
+    def __init__(self, cfg: Img2OccConfig | None = None, render_fn: Callable | None = None):
+        super().__init__()
+        self.cfg = cfg if cfg is not None else Img2OccConfig()
+        self.render_fn = render_fn
+        self.encoder = ImageEncoder(self.cfg)
+        self.head = GaussianHead(self.cfg)
+        grid = VoxelGrid(self.cfg.grid)
+        centres = torch.as_tensor(grid.centres(), dtype=torch.float32).view(-1, 3)
+        self.register_buffer("centres", centres, persistent=False)
+        lo = torch.as_tensor(grid.range_min, dtype=torch.float32)
+        hi = torch.as_tensor(grid.range_max, dtype=torch.float32)
+        self.register_buffer("position", 2 * (centres - lo) / (hi - lo) - 1, persistent=False)
+        # The readout threshold is state: choose_threshold sets it, checkpoints carry it.
+        self.register_buffer(
+            "occupancy_threshold", torch.tensor(float(self.cfg.occupancy_threshold))
+        )
+
+    # ------------------------------------------------------------------ inputs
+    def _check_batch(self, batch: dict, keys) -> None:
+        if not isinstance(batch, dict):
+            raise TypeError(f"batch: expected a dict of tensors, got {type(batch).__name__}")
+        missing = [k for k in keys if k not in batch]
+        if missing:
+            raise ValueError(f"batch: missing key(s) {missing}; got {sorted(batch)}")
+
+    def encode(self, batch: dict) -> tuple[AnchorGaussians, torch.Tensor]:
+        """Images → Gaussians and per-voxel camera visibility counts [B, V]."""
+        self._check_batch(batch, _KEY_INPUTS)
+        images = batch["images"]
+        h_in, w_in = self.cfg.input_size
+        if images.ndim != 5 or images.shape[2:] != (3, h_in, w_in):
+            raise ValueError(
+                f"images: expected [B, C, 3, {h_in}, {w_in}] (cfg.input_size), "
+                f"got {tuple(images.shape)}"
+            )
+        b, c = images.shape[:2]
+        feats = self.encoder(images.flatten(0, 1))
+        feats = feats.view(b, c, *feats.shape[1:])
+        stride = self.cfg.feature_stride
+        k_feat = scale_intrinsics(batch["intrinsics"].to(feats.dtype), 1.0 / stride)
+        lift = lift_features(feats, batch["cam_to_ego"], k_feat, self.centres, self.cfg.lift_near)
+        seen = (lift.count > 0).to(feats.dtype)
+        enc = torch.cat(
+            [
+                seen[:, None],
+                torch.log1p(lift.depth)[:, None] / math.log1p(self.cfg.far),
+                lift.view_dir.transpose(1, 2),
+                self.position.T[None].expand(b, -1, -1).to(feats.dtype),
+            ],
+            dim=1,
+        )
+        vox = torch.cat([lift.features, enc], dim=1).view(b, -1, *self.cfg.grid.shape)
+        return self.head(vox, self.centres), lift.count
+
+    def _pick(self, b: int, c: int, k: int | None, device) -> torch.Tensor:
+        if not self.training or k is None or k >= c:
+            return torch.arange(c, device=device).expand(b, c)
+        return torch.stack([torch.randperm(c)[:k].sort().values for _ in range(b)]).to(device)
+
+    def _render(self, g: AnchorGaussians, cam_to_ego, intrinsics) -> RenderedViews:
+        h, w = self.cfg.render_size
+        return render_views(
+            g, cam_to_ego, intrinsics, width=w, height=h,
+            render_fn=self.render_fn, prune_opacity=self.cfg.prune_opacity,
+            near=self.cfg.near, far=self.cfg.far, backend=self.cfg.render_backend,
+        )  # fmt: skip
+
+    # ------------------------------------------------------------------ forward
+    def forward(self, batch: dict, render: bool = True) -> Img2OccOutput:
+        """Predict Gaussians and (optionally) render them into the cameras.
+
+        Args:
+            batch: Img2OccDataset items stacked on B: images [B, C, 3, H_in, W_in],
+                intrinsics [B, C, 3, 3], cam_to_ego [B, C, 4, 4], render_intrinsics
+                [B, C, 3, 3] (needed to render), ``adj_*`` for adjacent-frame views.
+            render: render into cameras (training); False for readout/export only.
+
+        Returns:
+            :class:`Img2OccOutput`.
+        """
+        g, count = self.encode(batch)
+        b = count.shape[0]
+        out = Img2OccOutput(g, count.view(b, *self.cfg.grid.shape), self.cfg.grid.shape)
+        if not render:
+            return out
+        self._check_batch(batch, ("render_intrinsics",))
+        c = batch["cam_to_ego"].shape[1]
+        idx = self._pick(b, c, self.cfg.views_per_step, count.device)
+        out.view_index = idx
+        out.views = self._render(
+            g,
+            _gather_views(batch["cam_to_ego"], idx),
+            _gather_views(batch["render_intrinsics"], idx),
+        )
+        if self.cfg.adjacent_frames and "adj_cam_to_ego" in batch:
+            ca = batch["adj_cam_to_ego"].shape[1]
+            if ca > 0:
+                aidx = self._pick(b, ca, self.cfg.adjacent_views_per_step, count.device)
+                out.adj_index = aidx
+                out.adj_views = self._render(
+                    g,
+                    _gather_views(batch["adj_cam_to_ego"], aidx),
+                    _gather_views(batch["adj_render_intrinsics"], aidx),
+                )
+        return out
+
+    # ------------------------------------------------------------------ losses
+    def _view_losses(self, views: RenderedViews, depth, semantics) -> tuple:
+        h, w = self.cfg.render_size
+        if depth.shape[-2:] != (h, w) or semantics.shape[-2:] != (h, w):
+            raise ValueError(
+                f"depth/semantics: expected maps of cfg.render_size {(h, w)}, got "
+                f"{tuple(depth.shape)} and {tuple(semantics.shape)}"
+            )
+        sem = semantic_nll_loss(
+            views.features.flatten(0, 1),
+            views.alpha.flatten(0, 1),
+            semantics.flatten(0, 1).to(views.alpha.device),
+            eps=self.cfg.prob_eps,
+        )
+        rendered, target = views.depth.flatten(0, 1), depth.flatten(0, 1).to(views.depth)
+        dep = pearson_depth_loss(rendered, target)
+        l1 = relative_depth_l1_loss(rendered, target)
+        return sem, dep, l1
+
+    def loss(self, batch: dict, output: Img2OccOutput) -> tuple[torch.Tensor, dict[str, float]]:
+        """Rendered-semantics NLL + Pearson depth loss (paper Eq. 6.7), plus adjacent frames.
+
+        Args:
+            batch: as for ``forward``, with depth [B, C, H_r, W_r] (metres, 0 = no point)
+                and semantics [B, C, H_r, W_r] (int64, 255 = no label); ``adj_depth`` and
+                ``adj_semantics`` for adjacent views.
+            output: ``forward(batch)``'s result (rendered).
+
+        Returns:
+            ``(total, logs)``: scalar loss with a graph and a dict of floats.
+        """
+        if output.views is None:
+            raise ValueError("output: has no rendered views; call forward(batch, render=True)")
+        self._check_batch(batch, _KEY_TARGETS)
+        cfg = self.cfg
+        idx = output.view_index
+        sem, dep, l1 = self._view_losses(
+            output.views,
+            _gather_views(batch["depth"], idx),
+            _gather_views(batch["semantics"], idx),
+        )
+        total = cfg.semantic_weight * sem + cfg.depth_weight * dep + cfg.depth_l1_weight * l1
+        logs = {
+            "loss_sem": float(sem.detach()),
+            "loss_depth": float(dep.detach()),
+            "loss_depth_l1": float(l1.detach()),
+        }
+        if output.adj_views is not None:
+            self._check_batch(batch, ("adj_depth", "adj_semantics"))
+            a_sem, a_dep, a_l1 = self._view_losses(
+                output.adj_views,
+                _gather_views(batch["adj_depth"], output.adj_index),
+                _gather_views(batch["adj_semantics"], output.adj_index),
+            )
+            total = total + cfg.adjacent_weight * (
+                cfg.semantic_weight * a_sem + cfg.depth_weight * a_dep + cfg.depth_l1_weight * a_l1
+            )
+            logs.update(loss_adj_sem=float(a_sem.detach()), loss_adj_depth=float(a_dep.detach()))
+        logs["loss"] = float(total.detach())
+        logs["gaussians_rendered"] = float(output.views.num_rendered.float().mean())
+        logs["mean_opacity"] = float(output.gaussians.opacities.detach().mean())
+        return total, logs
+
+    # ------------------------------------------------------------------ readout
+    def set_threshold(self, threshold: float) -> None:
+        """Store the readout opacity threshold in the model's state (goes into checkpoints)."""
+        if not (0.0 <= float(threshold) < 1.0):
+            raise ValueError(f"threshold: expected a value in [0, 1), got {threshold!r}")
+        self.occupancy_threshold.fill_(float(threshold))
+
+    def readout(self, output: Img2OccOutput) -> torch.Tensor:
+        """3-D semantic occupancy [B, X, Y, Z] uint8 (``FREE_ID`` = free), ego frame."""
+        g = output.gaussians
+        return readout_occupancy(
+            g.opacities, g.logits, float(self.occupancy_threshold), output.grid_shape
+        )

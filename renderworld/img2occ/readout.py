@@ -1,0 +1,180 @@
+"""Readout threshold: pick the opacity threshold that maximises training-split mIoU.
+
+A voxel is occupied when its Gaussian's opacity exceeds the threshold, its class is the argmax
+of the logits. ``choose_threshold`` runs the model over GT-labelled batches, accumulates one
+18x18 confusion matrix per candidate threshold (Occ3D protocol: camera mask applied, whole
+split accumulated, mIoU = nanmean of the IoUs of classes 0..16) and stores the best threshold
+in the model's ``occupancy_threshold`` buffer, so it is saved with the checkpoint.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+import torch
+
+from renderworld.constants import FREE_ID, NUM_OCC3D_CLASSES
+
+__all__ = [
+    "DEFAULT_THRESHOLDS",
+    "ThresholdSearch",
+    "choose_threshold",
+    "confusion_matrix",
+    "miou_from_confusion",
+    "geometry_iou_from_confusion",
+]
+
+#: Candidate opacity thresholds searched by default.
+DEFAULT_THRESHOLDS: tuple[float, ...] = tuple(np.round(np.arange(0.05, 0.96, 0.05), 2).tolist())
+
+
+def confusion_matrix(pred, gt, mask=None) -> np.ndarray:
+    """18x18 confusion (rows GT, columns prediction) over Occ3D ids 0..17.
+
+    Args:
+        pred: [...] predicted ids 0..17 (numpy or torch).
+        gt: [...] GT ids 0..17, same shape.
+        mask: [...] bool voxels to count (e.g. the camera mask); all when None.
+
+    Returns:
+        [18, 18] int64.
+    """
+    pred = torch.as_tensor(pred).long().reshape(-1)
+    gt = torch.as_tensor(gt).long().reshape(-1).to(pred.device)
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred/gt: expected equal sizes, got {pred.numel()} and {gt.numel()}")
+    if mask is not None:
+        m = torch.as_tensor(mask).bool().reshape(-1).to(pred.device)
+        if m.shape != gt.shape:
+            raise ValueError(f"mask: expected {gt.numel()} voxels, got {m.numel()}")
+        pred, gt = pred[m], gt[m]
+    n = NUM_OCC3D_CLASSES
+    if gt.numel() and (int(gt.max()) >= n or int(gt.min()) < 0):
+        raise ValueError(f"gt: expected ids 0..{n - 1}, got {int(gt.min())}..{int(gt.max())}")
+    flat = torch.bincount(gt * n + pred, minlength=n * n)
+    return flat.view(n, n).cpu().numpy().astype(np.int64)
+
+
+def miou_from_confusion(conf: np.ndarray) -> tuple[float, np.ndarray]:
+    """(mIoU, per-class IoU [18]) from an 18x18 confusion; nanmean over classes 0..16.
+
+    A class absent from both GT and prediction has IoU NaN and is left out of the mean.
+    """
+    tp = np.diag(conf).astype(np.float64)
+    union = conf.sum(0) + conf.sum(1) - tp
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou = np.where(union > 0, tp / np.maximum(union, 1), np.nan)
+    sem = iou[:FREE_ID]
+    miou = float(np.nanmean(sem)) if np.isfinite(sem).any() else float("nan")
+    return miou, iou
+
+
+def geometry_iou_from_confusion(conf: np.ndarray) -> float:
+    """IoU of occupied (any class 0..16) vs free from an 18x18 confusion."""
+    occ_gt = conf[:FREE_ID].sum()
+    tp = conf[:FREE_ID, :FREE_ID].sum()
+    fp = conf[FREE_ID, :FREE_ID].sum()
+    union = occ_gt + fp
+    return float(tp / union) if union > 0 else float("nan")
+
+
+class ThresholdSearch:
+    """Streaming confusion matrices for a set of candidate opacity thresholds.
+
+    Args:
+        thresholds: candidate thresholds in [0, 1).
+    """
+
+    def __init__(self, thresholds: Sequence[float] = DEFAULT_THRESHOLDS):
+        th = np.asarray(list(thresholds), dtype=np.float64)
+        if th.ndim != 1 or th.size == 0 or (th < 0).any() or (th >= 1).any():
+            raise ValueError(f"thresholds: expected values in [0, 1), got {list(thresholds)}")
+        self.thresholds = th
+        self.conf = np.zeros((th.size, NUM_OCC3D_CLASSES, NUM_OCC3D_CLASSES), dtype=np.int64)
+
+    def update(self, opacities, classes, gt, mask=None) -> None:
+        """Add one batch.
+
+        Args:
+            opacities: [B, X, Y, Z] (or [B, V]) Gaussian opacities.
+            classes: same shape, argmax class 0..16 of each voxel.
+            gt: same shape, GT ids 0..17.
+            mask: same shape bool, voxels that count (camera mask), or None.
+        """
+        op = torch.as_tensor(opacities).detach().reshape(-1)
+        cls = torch.as_tensor(classes).reshape(-1).long().to(op.device)
+        gt = torch.as_tensor(gt).reshape(-1).to(op.device)
+        if not (op.shape == cls.shape == gt.shape):
+            raise ValueError(
+                f"opacities/classes/gt: expected equal sizes, got {op.numel()}, {cls.numel()}, "
+                f"{gt.numel()}"
+            )
+        if mask is not None:
+            m = torch.as_tensor(mask).reshape(-1).bool().to(op.device)
+            op, cls, gt = op[m], cls[m], gt[m]
+        free = torch.full_like(cls, FREE_ID)
+        for i, t in enumerate(self.thresholds):
+            self.conf[i] += confusion_matrix(torch.where(op > float(t), cls, free), gt)
+
+    def scores(self, criterion: str = "miou") -> np.ndarray:
+        """Score per threshold: ``"miou"`` (classes 0..16) or ``"iou"`` (geometry)."""
+        if criterion == "miou":
+            return np.array([miou_from_confusion(c)[0] for c in self.conf])
+        if criterion == "iou":
+            return np.array([geometry_iou_from_confusion(c) for c in self.conf])
+        raise ValueError(f"criterion: expected 'miou' or 'iou', got {criterion!r}")
+
+    def best(self, criterion: str = "miou") -> float:
+        """The threshold with the highest score (the lowest one on ties; NaN scores lose)."""
+        s = self.scores(criterion)
+        if not np.isfinite(s).any():
+            raise ValueError("best: no finite score; was any voxel with GT accumulated?")
+        return float(self.thresholds[int(np.nanargmax(s))])
+
+
+@torch.no_grad()
+def choose_threshold(
+    model,
+    batches: Iterable[dict],
+    thresholds: Sequence[float] = DEFAULT_THRESHOLDS,
+    criterion: str = "miou",
+    use_camera_mask: bool = True,
+) -> tuple[float, dict[float, float]]:
+    """Pick the readout threshold maximising training-split mIoU and store it in ``model``.
+
+    Args:
+        model: an :class:`~renderworld.img2occ.Img2Occ`.
+        batches: iterable of batches (training split) holding ``occ`` [B, X, Y, Z] GT and,
+            with ``use_camera_mask``, ``mask_camera``; tensors on the model's device.
+        thresholds: candidates.
+        criterion: ``"miou"`` (default, Occ3D mIoU over 0..16) or ``"iou"`` (geometry).
+        use_camera_mask: count only camera-visible voxels (Occ3D protocol).
+
+    Returns:
+        ``(threshold, {threshold: score})``; the threshold is also written to
+        ``model.occupancy_threshold``.
+    """
+    search = ThresholdSearch(thresholds)
+    was_training = model.training
+    model.eval()
+    seen = 0
+    try:
+        for batch in batches:
+            if "occ" not in batch:
+                raise ValueError("batches: every batch needs GT 'occ' to choose a threshold")
+            if use_camera_mask and "mask_camera" not in batch:
+                raise ValueError("batches: 'mask_camera' missing (or pass use_camera_mask=False)")
+            out = model(batch, render=False)
+            g = out.gaussians
+            mask = batch["mask_camera"] if use_camera_mask else None
+            search.update(g.opacities, g.logits.argmax(-1), batch["occ"], mask)
+            seen += 1
+    finally:
+        model.train(was_training)
+    if seen == 0:
+        raise ValueError("batches: empty; expected at least one batch with GT")
+    best = search.best(criterion)
+    model.set_threshold(best)
+    scores = search.scores(criterion)
+    return best, {float(t): float(s) for t, s in zip(search.thresholds, scores)}
