@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -41,6 +42,9 @@ class Step:
         out_dir: folder the step writes; its stamp lives there.
         depends_on: names of earlier steps whose outputs this step reads.
         inputs: files or folders whose content is part of the fingerprint (configs, code).
+        resume_args: arguments appended when ``resume_marker`` exists (an interrupted run to
+            continue); not part of the fingerprint.
+        resume_marker: a file whose presence means the step can resume (e.g. ``last.pt``).
     """
 
     name: str
@@ -49,11 +53,17 @@ class Step:
     out_dir: Path
     depends_on: tuple[str, ...] = ()
     inputs: tuple[Path, ...] = ()
+    resume_args: tuple[str, ...] = ()
+    resume_marker: Path | None = None
 
 
 @dataclass
 class StepResult:
-    """What happened to a step: ``status`` is ``"ran"`` or ``"skipped"``."""
+    """What happened to a step: ``status`` is ``"ran"`` or ``"skipped"``.
+
+    ``seconds`` is this run's time for a step that ran, the recorded time of the run that made
+    its outputs for a skipped one.
+    """
 
     name: str
     status: str
@@ -147,14 +157,24 @@ def run_steps(
             and "all" not in force
         ):
             echo(f"{header} — up to date, skipped (ran in {stamp.get('seconds', 0):.0f} s before)")
-            results.append(StepResult(step.name, "skipped", 0.0, fp))
+            results.append(StepResult(step.name, "skipped", float(stamp.get("seconds", 0.0)), fp))
             continue
-        echo(f"{header}\n    $ {' '.join(step.command)}")
+        command = list(step.command)
+        if step.resume_marker is not None and Path(step.resume_marker).exists():
+            command += list(step.resume_args)
+            echo(f"{header} — resuming from {step.resume_marker}")
+        else:
+            echo(header)
+        echo(f"    $ {' '.join(command)}")
+        if stamp and step.out_dir.exists():
+            # It ran before from other inputs: its outputs are stale, start it over.
+            echo(f"    inputs changed since the last run: clearing {step.out_dir}")
+            shutil.rmtree(step.out_dir)
         log = log_dir / f"{step.name}.log"
         t0 = time.perf_counter()
         with open(log, "w") as fh:
             proc = subprocess.Popen(
-                list(step.command),
+                command,
                 cwd=cwd,
                 env=env,
                 stdout=subprocess.PIPE,

@@ -1,0 +1,258 @@
+"""The main job's steps and report (``tools/run_pipeline.py``, ``make demo``).
+
+Steps run as subprocesses of the package's own tools, so each is also a command a user can run
+by hand; ``renderworld.training.pipeline`` skips the ones whose inputs did not change.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from renderworld.training.pipeline import Step, run_steps
+from renderworld.training.report import (
+    bev_image,
+    load_json,
+    metrics_table,
+    per_class_table,
+    plot_training_curves,
+    write_report,
+)
+
+__all__ = ["main_job_steps", "run_main_job"]
+
+VERSION = "v1.0-mini"
+
+
+def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
+    """The pipeline's steps for a ``configs/pipeline.yaml`` config."""
+    py = sys.executable
+    out = Path(str(cfg.out)).resolve()
+    data = Path(str(cfg.data_root)).resolve()
+    infos = data / "renderworld_infos" / VERSION
+    extra = tuple(str(x) for x in cfg.train_overrides)
+    pkg, conf = repo / "renderworld", repo / "configs"
+    common = (f"dataset.data_root={data}",)
+    steps = [
+        Step(
+            "fixtures",
+            f"simulate the {cfg.preset} fixture in nuScenes format",
+            (
+                py,
+                "tools/make_fixtures.py",
+                f"out={data}",
+                f"preset={cfg.preset}",
+                f"seed={cfg.seed}",
+                "overwrite=true",
+            ),  # fmt: skip
+            data,
+            inputs=(pkg / "sim", conf / "sim"),
+        ),
+        Step(
+            "infos",
+            "convert: infos, ego trajectories, LiDAR-projected 2-D labels",
+            (py, "tools/create_data.py", f"data_root={data}", f"version={VERSION}"),
+            infos,
+            depends_on=("fixtures",),
+            inputs=(repo / "data_converters", conf / "create_data.yaml"),
+        ),
+        Step(
+            "tokenizer",
+            "train the AM-VAE tokenizer on GT occupancy",
+            (
+                py,
+                "tools/train.py",
+                "experiment=tokenizer_mini",
+                *common,
+                f"run_dir={out / 'tokenizer'}",
+                *extra,
+            ),  # fmt: skip
+            out / "tokenizer",
+            depends_on=("infos",),
+            inputs=(
+                pkg / "tokenizer",
+                conf / "stage" / "tokenizer.yaml",
+                conf / "experiment" / "tokenizer_mini.yaml",
+            ),  # fmt: skip
+            resume_args=("resume=true",),
+            resume_marker=out / "tokenizer" / "checkpoints" / "last.pt",
+        ),
+        Step(
+            "tokenizer_eval",
+            "evaluate tokenizer reconstruction on mini_val",
+            (
+                py,
+                "tools/eval.py",
+                "experiment=tokenizer_mini",
+                *common,
+                f"ckpt={out / 'tokenizer' / 'checkpoints' / 'best.pt'}",
+                f"run_dir={out / 'tokenizer_eval'}",
+            ),  # fmt: skip
+            out / "tokenizer_eval",
+            depends_on=("tokenizer",),
+        ),
+    ]
+    if (conf / "stage" / "world_model.yaml").is_file():
+        tok = out / "tokenizer" / "checkpoints" / "best.pt"
+        steps += [
+            Step(
+                "world_model",
+                "train the world model on GT occupancy tokens (3D-Occ setting)",
+                (
+                    py,
+                    "tools/train.py",
+                    "experiment=world_model_mini",
+                    *common,
+                    f"stage.tokenizer_ckpt={tok}",
+                    f"run_dir={out / 'world_model'}",
+                    *extra,
+                ),  # fmt: skip
+                out / "world_model",
+                depends_on=("tokenizer",),
+                inputs=(
+                    pkg / "world",
+                    conf / "stage" / "world_model.yaml",
+                    conf / "experiment" / "world_model_mini.yaml",
+                ),  # fmt: skip
+                resume_args=("resume=true",),
+                resume_marker=out / "world_model" / "checkpoints" / "last.pt",
+            ),
+            Step(
+                "world_model_eval",
+                "forecast and plan on mini_val beside the baselines",
+                (
+                    py,
+                    "tools/eval.py",
+                    "experiment=world_model_mini",
+                    *common,
+                    f"stage.tokenizer_ckpt={tok}",
+                    f"ckpt={out / 'world_model' / 'checkpoints' / 'best.pt'}",
+                    f"run_dir={out / 'world_model_eval'}",
+                ),  # fmt: skip
+                out / "world_model_eval",
+                depends_on=("world_model",),
+            ),
+        ]
+    return steps
+
+
+def _bev_figure(cfg: Any, out: Path) -> Path | None:
+    """GT vs tokenizer reconstruction, bird's-eye view, for one mini_val frame."""
+    ckpt = out / "tokenizer" / "checkpoints" / "best.pt"
+    if not ckpt.is_file():
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import torch
+
+    from renderworld.data import load_infos
+    from renderworld.training.stages.tokenizer import OccFrames, load_tokenizer
+
+    data = Path(str(cfg.data_root)).resolve()
+    tok = load_tokenizer(ckpt)
+    grid = tuple(tok.cfg.grid_shape)
+    from renderworld.constants import GRIDS
+
+    spec = next(g for g in GRIDS.values() if tuple(g.shape) == grid)
+    frames = OccFrames(load_infos(data / "renderworld_infos" / VERSION, "val"), data, spec)
+    occ = frames[len(frames) // 2]["occ"][None]
+    with torch.no_grad():
+        rec = tok.decode(tok.encode(occ))[0].numpy()
+    fig, axes = plt.subplots(1, 2, figsize=(7, 3.6))
+    for ax, img, title in zip(
+        axes,
+        (bev_image(occ[0].numpy()), bev_image(rec)),
+        ("GT occupancy", "AM-VAE recon."),
+        strict=True,
+    ):
+        ax.imshow(img)
+        ax.set_title(title)
+        ax.axis("off")
+    fig.tight_layout()
+    path = out / "figures" / "bev_tokenizer.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def _report(cfg: Any, out: Path, results, seconds: float) -> Path:
+    data = Path(str(cfg.data_root)).resolve()
+    sim = load_json(data / "sim_report.json")
+    sections = []
+    steps = "\n".join(
+        ["| step | this run | seconds (when it ran) |", "|---|---|---|"]
+        + [f"| {r.name} | {r.status} | {r.seconds:.0f} |" for r in results]
+    )
+    made = sum(r.seconds for r in results)
+    sections.append(
+        (
+            "Run",
+            f"This run: {seconds:.0f} s; making every output took {made:.0f} s in all.\n\n{steps}",
+        )  # fmt: skip
+    )
+    if sim:
+        sections.append(
+            (
+                "Data",
+                f"Simulated fixture `{data}`: {sim.get('files', '?')} files, "
+                f"{sim.get('bytes', 0) / 2**20:.0f} MiB, generated in "
+                f"{sim.get('seconds', 0):.0f} s.",
+            )  # fmt: skip
+        )
+    tok = load_json(out / "tokenizer_eval" / "eval_metrics.json")
+    if tok:
+        body = metrics_table(
+            tok,
+            [
+                ("mIoU (classes 0..16, full volume, OccWorld protocol)", "val/miou"),
+                ("IoU occupied vs free (full volume)", "val/iou"),
+                ("mIoU inside the camera mask", "val/cam/miou"),
+                ("IoU inside the camera mask", "val/cam/iou"),
+            ],  # fmt: skip
+        )
+        body += "\n\nPer-class IoU (%, full volume):\n\n" + per_class_table(tok, "val/")
+        sections.append(("Tokenizer reconstruction (AM-VAE, mini_val, GT occupancy)", body))
+    wm_tables = sorted((out / "world_model_eval").glob("*.md"))
+    if wm_tables:
+        body = "\n\n".join(p.read_text() for p in wm_tables)
+        sections.append(("Forecasting and planning (mini_val, 3D-Occ setting)", body))
+    figures = []
+    for run in ("tokenizer", "world_model"):
+        png = plot_training_curves(
+            out / run / "metrics.csv", out / "figures" / f"curves_{run}.png",
+            keys=("train/loss", "val/"),
+        )  # fmt: skip
+        if png:
+            figures.append(f"![{run} training curves](figures/{png.name})")
+    bev = _bev_figure(cfg, out)
+    if bev:
+        figures.append(f"![BEV GT vs reconstruction](figures/{bev.name})")
+    if figures:
+        sections.append(("Pictures", "\n\n".join(figures)))
+    sections.append(
+        (
+            "Not in this run yet",
+            "Img2Occ (camera → occupancy with Gaussian splatting), its pseudo labels and the "
+            "'Camera' setting are not wired into the main job yet (issue 7 / 10).",
+        )  # fmt: skip
+    )
+    return write_report(out, sections)
+
+
+def run_main_job(cfg: Any, repo: Path) -> Path:
+    """Run every step (skipping up-to-date ones) and write ``<out>/report.md``."""
+    out = Path(str(cfg.out)).resolve()
+    t0 = time.perf_counter()
+    steps = main_job_steps(cfg, repo)
+    print(f"RenderWorld main job: {len(steps)} steps, outputs in {out}")
+    results = run_steps(steps, out / "logs", cwd=repo, force=list(cfg.force))
+    report = _report(cfg, out, results, time.perf_counter() - t0)
+    ran = sum(r.status == "ran" for r in results)
+    print(f"done in {time.perf_counter() - t0:.0f} s ({ran} steps ran, {len(results) - ran} "
+          f"up to date); report: {report}")  # fmt: skip
+    return report

@@ -1,0 +1,113 @@
+"""The main job's report: metric tables and pictures gathered from the pipeline's outputs.
+
+``write_report(out_dir, sections)`` writes ``<out_dir>/report.md`` and its pictures under
+``<out_dir>/figures/``. Pictures: training curves from each run's ``metrics.csv`` and bird's-eye
+views of occupancy (the top-most non-free class of each column, Occ3D colours).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from renderworld.constants import FREE_ID, OCC3D_CLASSES, OCC3D_COLORS
+
+__all__ = ["bev_image", "plot_training_curves", "metrics_table", "write_report"]
+
+
+def bev_image(occ: np.ndarray) -> np.ndarray:
+    """Bird's-eye view of occupancy: colour of the highest non-free voxel per (x, y) column.
+
+    Args:
+        occ: [X, Y, Z] uint8 Occ3D ids, ego frame (x forward, y left).
+
+    Returns:
+        [Y, X, 3] uint8 RGB image with x up and y to the left (as seen from above, driving up).
+    """
+    occ = np.asarray(occ)
+    if occ.ndim != 3:
+        raise ValueError(f"occ: expected [X, Y, Z], got shape {occ.shape}")
+    occupied = occ != FREE_ID
+    z_top = occ.shape[2] - 1 - np.argmax(occupied[:, :, ::-1], axis=2)
+    top = np.take_along_axis(occ, z_top[..., None], axis=2)[..., 0]
+    top = np.where(occupied.any(axis=2), top, FREE_ID)
+    rgb = np.asarray(OCC3D_COLORS, dtype=np.uint8)[top]  # [X, Y, 3]
+    return rgb[::-1, ::-1].copy()  # rows: x from front (top) to back; columns: y left to right
+
+
+def plot_training_curves(metrics_csv: Path, out_png: Path, keys=("train/loss",)) -> Path | None:
+    """Plot chosen keys of a run's long-format ``metrics.csv`` (step, epoch, key, value)."""
+    if not Path(metrics_csv).is_file():
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    series: dict[str, list[tuple[float, float]]] = defaultdict(list)
+    with open(metrics_csv) as fh:
+        for row in csv.DictReader(fh):
+            if row["key"] in keys or any(row["key"].startswith(k) for k in keys):
+                series[row["key"]].append((float(row["step"]), float(row["value"])))
+    if not series:
+        return None
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3), squeeze=False)
+    for ax, key in zip(axes[0], keys, strict=True):
+        for name, pts in sorted(series.items()):
+            if name == key:
+                xs, ys = zip(*pts, strict=True)
+                ax.plot(xs, ys)
+        ax.set_title(key)
+        ax.set_xlabel("step")
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=90)
+    plt.close(fig)
+    return out_png
+
+
+def metrics_table(metrics: dict, rows: list[tuple[str, str]], digits: int = 2) -> str:
+    """A two-column markdown table of chosen metrics (fractions shown as percentages)."""
+    lines = ["| metric | value |", "|---|---|"]
+    for label, key in rows:
+        value = metrics.get(key)
+        text = "n/a" if value is None or value != value else f"{100 * value:.{digits}f} %"
+        lines.append(f"| {label} | {text} |")
+    return "\n".join(lines)
+
+
+def per_class_table(metrics: dict, prefix: str) -> str:
+    """Per-class IoU (classes 0..16) as a one-row markdown table."""
+    names = OCC3D_CLASSES[:FREE_ID]
+    head = "| " + " | ".join(names) + " |"
+    sep = "|" + "---|" * len(names)
+    vals = []
+    for n in names:
+        v = metrics.get(f"{prefix}iou_{n}")
+        vals.append("–" if v is None or v != v else f"{100 * v:.1f}")
+    return "\n".join([head, sep, "| " + " | ".join(vals) + " |"])
+
+
+def load_json(path: Path) -> dict:
+    """A JSON file's content, or {} when missing."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def write_report(out_dir: Path, sections: list[tuple[str, str]]) -> Path:
+    """Write ``report.md`` from ``(title, markdown body)`` sections."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    text = ["# RenderWorld — main job report", ""]
+    for title, body in sections:
+        text += [f"## {title}", "", body.strip(), ""]
+    path = out_dir / "report.md"
+    path.write_text("\n".join(text))
+    return path

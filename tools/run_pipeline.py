@@ -1,0 +1,31 @@
+"""The whole RenderWorld pipeline on the simulated mini fixture (what ``make demo`` runs).
+
+    python tools/run_pipeline.py [out=outputs/demo] [force=[tokenizer]] [train_overrides=[...]]
+
+Steps (each skipped when its inputs did not change; see renderworld.training.pipeline):
+fixtures -> infos -> tokenizer (train, eval) -> world model (train, eval) -> report.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+import hydra  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from renderworld.training.pipeline_main import run_main_job  # noqa: E402
+
+
+@hydra.main(config_path="../configs", config_name="pipeline", version_base=None)
+def main(cfg: DictConfig) -> None:
+    """Run the main job."""
+    run_main_job(cfg, REPO)
+
+
+if __name__ == "__main__":
+    main()
