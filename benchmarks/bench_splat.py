@@ -283,7 +283,7 @@ def _print_row(row: dict) -> None:
         f"{head} fwd {row['fwd_s'] * 1e3:8.1f} ms  fwd+bwd {row['fwdbwd_s'] * 1e3:8.1f} ms "
         f"(cpu {row['fwdbwd_cpu_s'] * 1e3:8.1f} ms)  "
         f"peak +{row['fwd_peak_mb']:7.0f}/{row['fwdbwd_peak_mb']:7.0f} MB  "
-        f"isect {row['isect']:>9}  pairs/s {row['fwd_pairs_per_s'] / 1e9:6.2f} G "
+        f"isect {row['isect']:>9}  pairs/s {row['fwd_pairs_per_s'] / 1e6:8.1f} M "
         f"({100 * row['fwd_vs_exp']:5.1f}% of exp)"
     )
     if "fwd_speedup_vs_ref" in row:

@@ -80,8 +80,13 @@ def bin_gaussians(
         owner = torch.repeat_interleave(torch.arange(num_pairs, device=device), counts)
         starts = torch.cumsum(counts, 0) - counts
         local = torch.arange(owner.numel(), device=device) - starts[owner]
-        tx = lo_x[owner] + local % nx[owner]
-        ty = lo_y[owner] + local // nx[owner]
+        # local = row * nx + col; small integers (< tiles per image), so float division is
+        # exact and much cheaper than int64 division.
+        width_o = nx[owner].to(torch.float32)
+        row_o = torch.floor((local.to(torch.float32) + 0.5) / width_o)
+        col_o = local - (row_o * width_o).long()
+        tx = lo_x[owner] + col_o
+        ty = lo_y[owner] + row_o.long()
         tile = (cam[owner] * tiles_y + ty) * tiles_x + tx
         key = tile * (num_pairs + 1) + rank[owner]
         pair_ids = owner[torch.sort(key).indices]

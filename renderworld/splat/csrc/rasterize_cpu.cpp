@@ -269,9 +269,9 @@ std::vector<torch::Tensor> splat_forward(torch::Tensor means2d, torch::Tensor co
                                          int64_t height) {
   const Geometry g = make_geometry(tiles_x, tiles_y, tile, width, height, opac, feats);
   auto opts = means2d.options();
-  auto out = torch::zeros({num_cams, height, width, g.dim + 2}, opts);
-  auto t_final = torch::ones({num_cams, height, width}, opts);
-  auto last = torch::zeros({num_cams, height, width}, opts.dtype(torch::kInt64));
+  auto out = torch::empty({num_cams, height, width, g.dim + 2}, opts);  // every pixel written
+  auto t_final = torch::empty({num_cams, height, width}, opts);
+  auto last = torch::empty({num_cams, height, width}, opts.dtype(torch::kInt64));
   const int64_t num_tiles = offs.size(0) - 1;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "splat_forward", [&] {
     forward_impl<scalar_t>(g, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
