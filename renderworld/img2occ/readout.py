@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from renderworld.constants import FREE_ID, NUM_OCC3D_CLASSES
+from renderworld.metrics.occupancy import geometry_iou, iou_per_class, mean_iou
 
 __all__ = [
     "DEFAULT_THRESHOLDS",
@@ -59,24 +60,15 @@ def confusion_matrix(pred, gt, mask=None) -> np.ndarray:
 def miou_from_confusion(conf: np.ndarray) -> tuple[float, np.ndarray]:
     """(mIoU, per-class IoU [18]) from an 18x18 confusion; nanmean over classes 0..16.
 
-    A class absent from both GT and prediction has IoU NaN and is left out of the mean.
+    A class absent from both GT and prediction has IoU NaN and is left out of the mean
+    (the Occ3D protocol of :mod:`renderworld.metrics.occupancy`, which computes it).
     """
-    tp = np.diag(conf).astype(np.float64)
-    union = conf.sum(0) + conf.sum(1) - tp
-    with np.errstate(invalid="ignore", divide="ignore"):
-        iou = np.where(union > 0, tp / np.maximum(union, 1), np.nan)
-    sem = iou[:FREE_ID]
-    miou = float(np.nanmean(sem)) if np.isfinite(sem).any() else float("nan")
-    return miou, iou
+    return mean_iou(conf), iou_per_class(conf)
 
 
 def geometry_iou_from_confusion(conf: np.ndarray) -> float:
     """IoU of occupied (any class 0..16) vs free from an 18x18 confusion."""
-    occ_gt = conf[:FREE_ID].sum()
-    tp = conf[:FREE_ID, :FREE_ID].sum()
-    fp = conf[FREE_ID, :FREE_ID].sum()
-    union = occ_gt + fp
-    return float(tp / union) if union > 0 else float("nan")
+    return geometry_iou(conf)
 
 
 class ThresholdSearch:

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import torch
 
-from renderworld.constants import FREE_ID, NUM_OCC3D_CLASSES
+from renderworld.constants import NUM_OCC3D_CLASSES
+from renderworld.metrics.occupancy import geometry_iou, iou_per_class, mean_iou
 
 __all__ = ["confusion_matrix", "metrics_from_confusion", "reconstruction_metrics", "ConfusionMeter"]
 
@@ -72,18 +73,9 @@ def metrics_from_confusion(conf: torch.Tensor) -> dict[str, float | list[float]]
         "iou": occupied-vs-free IoU (nan if nothing occupied in truth or prediction),
         "per_class_iou": 18 IoUs (nan where the union is empty), "num_voxels": total}``.
     """
-    conf = conf.double()
-    tp = conf.diag()
-    union = conf.sum(0) + conf.sum(1) - tp
-    iou = torch.where(union > 0, tp / union.clamp_min(1), torch.full_like(tp, float("nan")))
-    semantic = [c for c in range(NUM_OCC3D_CLASSES) if c != FREE_ID]
-    sem = iou[semantic]
-    miou = float(sem[~sem.isnan()].mean()) if bool((~sem.isnan()).any()) else float("nan")
-    occ = torch.ones(NUM_OCC3D_CLASSES, dtype=torch.bool)
-    occ[FREE_ID] = False
-    geo_tp = conf[occ][:, occ].sum()
-    geo_union = conf[occ].sum() + conf[:, occ].sum() - geo_tp
-    geo = float(geo_tp / geo_union) if geo_union > 0 else float("nan")
+    c = conf.double().cpu().numpy()
+    iou = iou_per_class(c)
+    miou, geo = mean_iou(c), geometry_iou(c)
     return {
         "miou": miou,
         "iou": geo,
