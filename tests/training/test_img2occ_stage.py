@@ -123,6 +123,23 @@ def test_stage_config_composes_and_validates(converted, tmp_path):
         img2occ_config(bad)
 
 
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("stage.threshold.criterion=f1", r"stage.threshold.criterion: expected 'miou' or 'iou'"),
+        ("stage.threshold.candidates=[0.5,1.5]", r"stage.threshold.candidates: expected values"),
+        ("stage.threshold.max_samples=0", r"stage.threshold.max_samples: expected null or an int"),
+    ],
+)
+def test_bad_threshold_options_fail_before_training(converted, tmp_path, override, message):
+    root, infos = converted
+    run = tmp_path / "run"
+    cfg = compose_cfg([*stage_overrides(root, infos), override, f"run_dir={run}"])
+    with pytest.raises(ValueError, match=message):
+        train(cfg)
+    assert not run.exists()
+
+
 def test_training_gives_finite_occ3d_metrics(trained):
     _, _, run, metrics = trained
     assert metrics["step"] == 4 and math.isfinite(metrics["train/loss"])

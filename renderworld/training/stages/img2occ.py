@@ -85,6 +85,22 @@ def _adjacent(cfg: Any) -> int:
     return k
 
 
+def _threshold_options(cfg: Any) -> tuple[str, list[float], int | None]:
+    """(criterion, candidates, max_samples) of ``stage.threshold``, validated."""
+    t = cfg.stage.get("threshold") or {}
+    criterion = str(t.get("criterion", "miou"))
+    if criterion not in ("miou", "iou"):
+        raise ValueError(f"stage.threshold.criterion: expected 'miou' or 'iou', got {criterion!r}")
+    raw = t.get("candidates")
+    candidates = list(DEFAULT_THRESHOLDS) if raw is None else [float(v) for v in raw]
+    if not candidates or not all(0.0 <= v < 1.0 for v in candidates):
+        raise ValueError(f"stage.threshold.candidates: expected values in [0, 1), got {raw!r}")
+    cap = t.get("max_samples")
+    if cap is not None and (isinstance(cap, bool) or not isinstance(cap, int) or cap < 1):
+        raise ValueError(f"stage.threshold.max_samples: expected null or an int >= 1, got {cap!r}")
+    return criterion, candidates, cap
+
+
 def img2occ_config(cfg: Any) -> Img2OccConfig:
     """The :class:`Img2OccConfig` of a run config.
 
@@ -212,7 +228,8 @@ class Img2OccStage(Stage):
         return Img2Occ(img2occ_config(cfg))
 
     def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
-        img2occ_config(cfg)  # fail on a bad model config before any data is read
+        img2occ_config(cfg)  # fail on a bad model or threshold config before any data is read
+        _threshold_options(cfg)
         train = img2occ_datasets(cfg, cfg.dataset.train_split, _adjacent(cfg))
         # Evaluation reads the readout only: no adjacent views to load.
         self._val = img2occ_datasets(cfg, cfg.dataset.val_split)
@@ -272,20 +289,15 @@ class Img2OccStage(Stage):
 
     def _threshold_set(self) -> Dataset:
         data = img2occ_datasets(self.cfg, self.cfg.dataset.train_split)
-        cap = self.cfg.stage.get("threshold", {}).get("max_samples")
-        if cap is not None and int(cap) < len(data):
-            if int(cap) < 1:
-                raise ValueError(f"stage.threshold.max_samples: expected >= 1, got {cap!r}")
+        cap = _threshold_options(self.cfg)[2]
+        if cap is not None and cap < len(data):
             # Evenly spaced over the split (every scene contributes), deterministic.
-            idx = np.unique(np.linspace(0, len(data) - 1, int(cap)).round().astype(int))
+            idx = np.unique(np.linspace(0, len(data) - 1, cap).round().astype(int))
             data = Subset(data, idx.tolist())
         return data
 
     def _choose(self, model: Img2Occ, data: Dataset) -> dict[str, Any]:
-        tcfg = self.cfg.stage.get("threshold", {})
-        criterion = str(tcfg.get("criterion", "miou"))
-        candidates = tcfg.get("candidates")
-        candidates = DEFAULT_THRESHOLDS if candidates is None else [float(t) for t in candidates]
+        criterion, candidates, _ = _threshold_options(self.cfg)
         device = next(model.parameters()).device
         batches = (self.transfer_batch(b, device) for b in self._loader(data))
         initial = float(model.occupancy_threshold)
