@@ -141,6 +141,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
             out = {"checkpoint": str(ckpt_path.resolve()), "stage": stage.name, **metrics}
             (run_dir / "eval_metrics.json").write_text(json.dumps(out, indent=2) + "\n")
             log.info("evaluated %s: %s", ckpt_path, metrics)
+            stage.on_eval_end(model, dict(metrics), str(run_dir))
         return metrics
     finally:
         shutdown_distributed(info)

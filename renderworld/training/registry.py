@@ -118,6 +118,15 @@ class Stage(ABC):
     def on_train_end(self, model: nn.Module, run_dir: str) -> None:  # noqa: B027 - optional
         """Called on every rank after the last step and the final checkpoint."""
 
+    def on_eval_end(  # noqa: B027 - optional
+        self, model: nn.Module, metrics: Mapping[str, float], run_dir: str
+    ) -> None:
+        """Called by ``evaluate(cfg)`` on rank 0 after ``eval_metrics.json`` is written.
+
+        For extra outputs in the eval run directory (pictures, tables). ``model`` holds the
+        checkpoint's weights, on the evaluation device; ``metrics`` are the returned ones.
+        """
+
 
 def register_stage(name: str) -> Callable[[type[Stage]], type[Stage]]:
     """Class decorator registering a ``Stage`` subclass under ``name``.

@@ -1,0 +1,415 @@
+"""The ``img2occ`` stage: camera images → semantic Gaussians → 3-D occupancy (paper §6.2.1).
+
+Training: ``Img2OccDataset`` keyframes of the converter's train split (plus, with
+``stage.adjacent_frames = k``, the k previous / next keyframes' cameras as label-only views);
+loss = the model's rendered-semantics NLL + Pearson depth (+ the optional relative-depth L1).
+
+Evaluation, Occ3D protocol (DESIGN.md §4): the readout (opacity > the model's stored threshold,
+class = argmax) is compared with the Occ3D ground truth on the run's grid; 18x18 confusions are
+summed over the split (and over ranks) inside the camera mask (``cam/``, Occ3D official, with
+per-class IoU), inside the LiDAR mask (``lidar/``) and on the full volume (``full/``).
+mIoU = nanmean over classes 0..16, free excluded; ``iou`` = geometry IoU (occupied vs free).
+
+Readout threshold: at the end of training (rank 0) ``choose_threshold`` picks it on the TRAINING
+split (criterion ``stage.threshold.criterion``, camera mask) for the weights of ``last.pt`` and,
+separately, of ``best.pt``; each checkpoint is re-written atomically with its threshold in the
+model state (buffer ``occupancy_threshold``), a ``threshold`` record and its validation metrics
+recomputed with that threshold. Validation during training uses the threshold the model holds
+(``stage.model.occupancy_threshold`` for a fresh run), so ``best.pt`` is picked at that one.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+from torch import nn
+from torch.utils.data import DataLoader, Dataset, Subset, default_collate
+
+from renderworld.img2occ import Img2Occ, Img2OccConfig, choose_threshold, draw_views
+from renderworld.img2occ.readout import DEFAULT_THRESHOLDS
+from renderworld.training.checkpoint import (
+    check_state_dict_keys,
+    load_checkpoint,
+    save_checkpoint,
+)
+from renderworld.training.registry import Stage, register_stage
+from renderworld.training.stages.common import (
+    confusion_stats,
+    grid_of,
+    infos_dir,
+    occupancy_metrics,
+)
+
+__all__ = [
+    "Img2OccStage",
+    "img2occ_config",
+    "img2occ_datasets",
+    "load_img2occ",
+    "occ3d_report_markdown",
+    "MASKS",
+]
+
+log = logging.getLogger("renderworld.training")
+
+#: Metric prefixes and the region each covers (every confusion is summed over the split).
+MASKS = {
+    "cam/": "camera mask (Occ3D official)",
+    "lidar/": "LiDAR mask",
+    "full/": "full volume",
+}
+# Stage-level keys that fill these Img2OccConfig fields (never set them under stage.model).
+_STAGE_FIELDS = ("grid", "input_size", "render_size", "adjacent_frames")
+
+
+def _size(cfg: Any, key: str) -> tuple[int, int]:
+    value = cfg.stage.get(key)
+    try:
+        h, w = (int(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"stage.{key}: expected [H, W] pixels, got {value!r}") from None
+    return h, w
+
+
+def _adjacent(cfg: Any) -> int:
+    k = cfg.stage.get("adjacent_frames", 0)
+    if isinstance(k, bool) or not isinstance(k, int) or k < 0:
+        raise ValueError(f"stage.adjacent_frames: expected an integer k >= 0, got {k!r}")
+    return k
+
+
+def _threshold_options(cfg: Any) -> tuple[str, list[float], int | None]:
+    """(criterion, candidates, max_samples) of ``stage.threshold``, validated."""
+    t = cfg.stage.get("threshold") or {}
+    criterion = str(t.get("criterion", "miou"))
+    if criterion not in ("miou", "iou"):
+        raise ValueError(f"stage.threshold.criterion: expected 'miou' or 'iou', got {criterion!r}")
+    raw = t.get("candidates")
+    candidates = list(DEFAULT_THRESHOLDS) if raw is None else [float(v) for v in raw]
+    if not candidates or not all(0.0 <= v < 1.0 for v in candidates):
+        raise ValueError(f"stage.threshold.candidates: expected values in [0, 1), got {raw!r}")
+    cap = t.get("max_samples")
+    if cap is not None and (isinstance(cap, bool) or not isinstance(cap, int) or cap < 1):
+        raise ValueError(f"stage.threshold.max_samples: expected null or an int >= 1, got {cap!r}")
+    return criterion, candidates, cap
+
+
+def img2occ_config(cfg: Any) -> Img2OccConfig:
+    """The :class:`Img2OccConfig` of a run config.
+
+    ``stage.model`` holds Img2OccConfig fields; the grid comes from the ``grid`` group and
+    ``input_size``, ``render_size``, ``adjacent_frames`` (k > 0 turns the model's adjacent-view
+    losses on) from the stage's own keys, shared with the datasets.
+
+    Raises:
+        ValueError: an unknown ``stage.model`` key, a stage-level field set under
+            ``stage.model``, or an invalid value (the message names the key).
+    """
+    model = OmegaConf.to_container(cfg.stage.model, resolve=True) if cfg.stage.get("model") else {}
+    names = {f.name for f in dataclasses.fields(Img2OccConfig)}
+    for key in model:
+        if key in _STAGE_FIELDS:
+            raise ValueError(
+                f"stage.model.{key}: set by the run config ("
+                + ("the grid group" if key == "grid" else f"stage.{key}")
+                + "), not under stage.model"
+            )
+        if key not in names:
+            raise ValueError(
+                f"stage.model.{key}: not an Img2OccConfig field; expected one of "
+                f"{sorted(names - set(_STAGE_FIELDS))}"
+            )
+    try:
+        return Img2OccConfig(
+            grid=grid_of(cfg),
+            input_size=_size(cfg, "input_size"),
+            render_size=_size(cfg, "render_size"),
+            adjacent_frames=_adjacent(cfg) > 0,
+            **model,
+        )
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"stage (Img2OccConfig): {err}") from None
+
+
+def img2occ_datasets(cfg: Any, split: str, adjacent_frames: int = 0) -> Dataset:
+    """An ``Img2OccDataset`` of one converter split at the run's sizes and grid.
+
+    Args:
+        cfg: run config (``dataset``, ``grid``, ``stage``).
+        split: split name (``infos_<split>.parquet`` in :func:`infos_dir`).
+        adjacent_frames: k neighbouring keyframes on each side as label-only views.
+    """
+    from renderworld.data import Img2OccDataset, load_infos
+
+    return Img2OccDataset(
+        load_infos(infos_dir(cfg), split),
+        str(cfg.dataset.data_root),
+        input_size=_size(cfg, "input_size"),
+        render_size=_size(cfg, "render_size"),
+        grid=grid_of(cfg),
+        adjacent_frames=adjacent_frames,
+    )
+
+
+def load_img2occ(path, device: str | torch.device = "cpu") -> tuple[Img2Occ, dict[str, Any]]:
+    """Rebuild a trained Img2Occ from an ``img2occ`` checkpoint (its stored config), eval mode.
+
+    Args:
+        path: ``last.pt`` / ``best.pt`` written by ``tools/train.py stage=img2occ``.
+        device: where to put the model.
+
+    Returns:
+        ``(model, checkpoint dict)``; the readout threshold is the checkpoint's.
+
+    Raises:
+        CheckpointError: the file is not an img2occ checkpoint or its weights do not fit.
+    """
+    ckpt = load_checkpoint(path, expected_stage="img2occ")
+    model = Img2Occ(img2occ_config(OmegaConf.create(ckpt["config"])))
+    check_state_dict_keys(model, ckpt["model"], f"checkpoint {str(path)!r}")
+    model.load_state_dict(ckpt["model"], strict=True)
+    model.to(device).eval()
+    return model, ckpt
+
+
+def _is_main() -> bool:
+    dist = torch.distributed
+    return not (dist.is_available() and dist.is_initialized()) or dist.get_rank() == 0
+
+
+def _fmt(value: float | None) -> str:
+    return "–" if value is None or value != value else f"{100 * value:.2f}"
+
+
+def occ3d_report_markdown(metrics: dict[str, float], title: str, notes: list[str]) -> str:
+    """A markdown report of Occ3D-protocol metrics (``val/<mask>/...`` keys, fractions).
+
+    Per-class IoU inside the camera mask (classes 0..16, "–" = absent from GT and prediction,
+    left out of the mean), then mIoU and geometry IoU for each mask. Values in percent.
+    """
+    from renderworld.constants import OCC3D_CLASSES
+    from renderworld.metrics.occupancy import OCCUPANCY_PROTOCOL
+
+    lines = [f"# {title}", "", *[f"- {n}" for n in notes], f"- protocol: {OCCUPANCY_PROTOCOL}"]
+    lines += ["", "## Per-class IoU, camera mask (Occ3D official), %", ""]
+    lines += ["| id | class | IoU |", "|---:|---|---:|"]
+    for c, name in enumerate(OCC3D_CLASSES[:-1]):
+        lines.append(f"| {c} | {name} | {_fmt(metrics.get(f'val/cam/iou_{name}'))} |")
+    lines += [
+        "",
+        "## Summary, %",
+        "",
+        "| region | mIoU (0..16) | geometry IoU |",
+        "|---|---:|---:|",
+    ]
+    for prefix, label in MASKS.items():
+        miou, iou = metrics.get(f"val/{prefix}miou"), metrics.get(f"val/{prefix}iou")
+        lines.append(f"| {label} | {_fmt(miou)} | {_fmt(iou)} |")
+    return "\n".join(lines) + "\n"
+
+
+@register_stage("img2occ")
+class Img2OccStage(Stage):
+    """Img2Occ training and Occ3D-protocol evaluation (see the module docstring)."""
+
+    def __init__(self, cfg: Any) -> None:
+        super().__init__(cfg)
+        self._val: Dataset | None = None
+
+    # ------------------------------------------------------------------ build
+    def build_model(self, cfg: Any) -> nn.Module:
+        return Img2Occ(img2occ_config(cfg))
+
+    def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
+        img2occ_config(cfg)  # fail on a bad model or threshold config before any data is read
+        _threshold_options(cfg)
+        train = img2occ_datasets(cfg, cfg.dataset.train_split, _adjacent(cfg))
+        # Evaluation reads the readout only: no adjacent views to load.
+        self._val = img2occ_datasets(cfg, cfg.dataset.val_split)
+        return train, self._val
+
+    # ------------------------------------------------------------------ train
+    def loss(self, model: nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, Any]]:
+        raw = model.module if hasattr(model, "module") else model
+        return raw.loss(batch, model(batch))
+
+    # ------------------------------------------------------------------ evaluate
+    def evaluate(self, model: nn.Module, loader: Any) -> dict[str, torch.Tensor]:
+        raw = model.module if hasattr(model, "module") else model
+        device = next(raw.parameters()).device
+        stats = {
+            "confusion_cam": torch.zeros(18, 18, dtype=torch.float64),
+            "confusion_lidar": torch.zeros(18, 18, dtype=torch.float64),
+            "confusion_full": torch.zeros(18, 18, dtype=torch.float64),
+            "samples": torch.zeros((), dtype=torch.float64),
+        }
+        for batch in loader:
+            missing = [k for k in ("occ", "mask_camera", "mask_lidar") if k not in batch]
+            if missing:
+                tokens = batch.get("meta", {}).get("sample_token", "?")
+                raise ValueError(
+                    f"validation batch (samples {tokens}) lacks {missing}: the Occ3D protocol "
+                    "needs Occ3D ground truth (gts/<scene>/<token>/labels.npz) for every "
+                    "validation sample"
+                )
+            batch = self.transfer_batch(batch, device)
+            pred = raw.readout(raw(batch, render=False))
+            occ = batch["occ"]
+            stats["confusion_cam"] += confusion_stats(pred, occ, batch["mask_camera"]).cpu()
+            stats["confusion_lidar"] += confusion_stats(pred, occ, batch["mask_lidar"]).cpu()
+            stats["confusion_full"] += confusion_stats(pred, occ).cpu()
+            stats["samples"] += float(occ.shape[0])
+        dev = torch.device(device)
+        return {k: v.to(dev) for k, v in stats.items()}
+
+    def compute_metrics(self, stats: dict[str, torch.Tensor]) -> dict[str, float]:
+        out = occupancy_metrics(stats["confusion_cam"], "cam/")
+        for prefix, key in (("lidar/", "confusion_lidar"), ("full/", "confusion_full")):
+            m = occupancy_metrics(stats[key], prefix)
+            out[f"{prefix}miou"], out[f"{prefix}iou"] = m[f"{prefix}miou"], m[f"{prefix}iou"]
+        out["samples"] = float(stats["samples"])
+        return out
+
+    # ------------------------------------------------------------------ threshold
+    def _loader(self, dataset: Dataset) -> DataLoader:
+        tr = self.cfg.trainer
+        return DataLoader(
+            dataset,
+            batch_size=int(tr.get("val_batch_size") or tr.batch_size),
+            shuffle=False,
+            num_workers=int(tr.get("num_workers", 0)),
+        )
+
+    def _threshold_set(self) -> Dataset:
+        data = img2occ_datasets(self.cfg, self.cfg.dataset.train_split)
+        cap = _threshold_options(self.cfg)[2]
+        if cap is not None and cap < len(data):
+            # Evenly spaced over the split (every scene contributes), deterministic.
+            idx = np.unique(np.linspace(0, len(data) - 1, cap).round().astype(int))
+            data = Subset(data, idx.tolist())
+        return data
+
+    def _choose(self, model: Img2Occ, data: Dataset) -> dict[str, Any]:
+        criterion, candidates, _ = _threshold_options(self.cfg)
+        device = next(model.parameters()).device
+        batches = (self.transfer_batch(b, device) for b in self._loader(data))
+        initial = float(model.occupancy_threshold)
+        value, scores = choose_threshold(model, batches, candidates, criterion, True)
+        return {
+            "value": value,
+            "initial": initial,
+            "criterion": criterion,
+            "mask": "camera",
+            "split": str(self.cfg.dataset.train_split),
+            "samples": len(data),
+            "scores": {f"{t:g}": s for t, s in scores.items()},
+        }
+
+    def _val_metrics(self, model: nn.Module) -> dict[str, float]:
+        if self._val is None:
+            return {}
+        model.eval()
+        with torch.no_grad():
+            stats = self.evaluate(model, self._loader(self._val))
+        return {f"val/{k}": float(v) for k, v in self.compute_metrics(stats).items()}
+
+    def on_train_end(self, model: nn.Module, run_dir: str) -> None:
+        """Rank 0: choose the readout threshold for ``last.pt`` and ``best.pt`` and re-save them.
+
+        Each checkpoint gets the threshold chosen on the training split for its own weights,
+        stored in ``model["occupancy_threshold"]``, a ``threshold`` record (value, criterion,
+        scores per candidate, the validation metrics at the initial threshold) and ``metrics``
+        recomputed on the validation split with it; ``<run_dir>/threshold.json`` sums it up.
+        The in-memory model ends with ``last.pt``'s threshold.
+        """
+        if not _is_main():
+            return
+        ckpt_dir = Path(run_dir) / "checkpoints"
+        data = self._threshold_set()
+        was_training = model.training
+        summary: dict[str, Any] = {}
+        try:
+            last = load_checkpoint(ckpt_dir / "last.pt", expected_stage=self.name)
+            record = self._choose(model, data)
+            last_metrics = self._val_metrics(model)
+            self._resave(ckpt_dir / "last.pt", last, model, record, last_metrics)
+            summary["last.pt"] = {"step": last["step"], **record, "val_metrics": last_metrics}
+            best_path = ckpt_dir / "best.pt"
+            if best_path.is_file():
+                best = load_checkpoint(best_path, expected_stage=self.name)
+                if int(best["step"]) == int(last["step"]):  # same weights: same threshold
+                    best_record, best_metrics, src = record, last_metrics, model
+                else:
+                    src = copy.deepcopy(model)
+                    src.load_state_dict(best["model"], strict=True)
+                    best_record = self._choose(src, data)
+                    best_metrics = self._val_metrics(src)
+                self._resave(best_path, best, src, best_record, best_metrics)
+                summary["best.pt"] = {
+                    "step": best["step"],
+                    **best_record,
+                    "val_metrics": best_metrics,
+                }
+        finally:
+            model.train(was_training)
+        path = Path(run_dir) / "threshold.json"
+        path.write_text(json.dumps(summary, indent=2) + "\n")
+        log.info(
+            "readout threshold chosen on the %s split (%d samples, %s, camera mask): %s; "
+            "val cam/miou with it: %s",
+            self.cfg.dataset.train_split,
+            len(data),
+            summary["last.pt"]["criterion"],
+            {k: v["value"] for k, v in summary.items()},
+            {k: v["val_metrics"].get("val/cam/miou") for k, v in summary.items()},
+        )
+
+    @staticmethod
+    def _resave(path: Path, ckpt: dict, model: Img2Occ, record: dict, metrics: dict) -> None:
+        ckpt = dict(ckpt)
+        state = dict(ckpt["model"])
+        state["occupancy_threshold"] = model.occupancy_threshold.detach().cpu().clone()
+        ckpt["model"] = state
+        record = dict(record, metrics_at_initial=dict(ckpt.get("metrics") or {}))
+        ckpt["threshold"] = record
+        if metrics:
+            ckpt["metrics"] = metrics
+        save_checkpoint(ckpt, path)
+
+    # ------------------------------------------------------------------ report
+    def on_eval_end(self, model: nn.Module, metrics: dict[str, float], run_dir: str) -> None:
+        """Write ``img2occ_views.png`` and ``occ3d_metrics.md`` into the eval run dir."""
+        out = Path(run_dir)
+        raw = model.module if hasattr(model, "module") else model
+        threshold = float(raw.occupancy_threshold)
+        notes = [
+            f"checkpoint: `{self.cfg.get('ckpt')}` (step {int(metrics.get('step', -1))})",
+            f"split: `{self.cfg.dataset.val_split}`, {int(metrics.get('val/samples', 0))} "
+            f"samples, grid `{self.cfg.grid.name}` {list(self.cfg.grid.shape)}",
+            f"readout: opacity > {threshold:g} (the checkpoint's stored threshold), "
+            "class = argmax of the Gaussian's logits",
+        ]
+        text = occ3d_report_markdown(metrics, "Img2Occ occupancy, Occ3D protocol", notes)
+        (out / "occ3d_metrics.md").write_text(text)
+        if self._val is None or len(self._val) == 0:
+            return
+        index = int(self.cfg.stage.get("report_sample", 0))
+        if not 0 <= index < len(self._val):
+            raise ValueError(f"stage.report_sample: expected 0..{len(self._val) - 1}, got {index}")
+        device = next(raw.parameters()).device
+        batch = self.transfer_batch(default_collate([self._val[index]]), device)
+        was_training = raw.training
+        raw.eval()
+        try:
+            with torch.no_grad():
+                output = raw(batch, render=True)
+        finally:
+            raw.train(was_training)
+        draw_views(batch, output, out / "img2occ_views.png")

@@ -1,0 +1,247 @@
+"""The img2occ stage on the simulated tiny fixture: config, training, threshold, eval, export."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+
+import numpy as np
+import pytest
+import torch
+
+from data_converters import ConvertOptions, create_data
+from renderworld.constants import OCC3D_CLASSES
+from renderworld.data import Img2OccDataset, OccSequenceDataset, load_infos, load_occ3d_labels
+from renderworld.training import train
+from renderworld.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from renderworld.training.stages.img2occ import img2occ_config, load_img2occ
+
+from .conftest import PYTHON, REPO, compose_cfg, subprocess_env
+
+EXPORT = str(REPO / "tools" / "export_occ.py")
+EVAL = str(REPO / "tools" / "eval.py")
+INITIAL = 0.99  # readout threshold before training ends: everything reads as free
+CANDIDATES = [0.05, 0.1, 0.2, 0.3]
+
+
+@pytest.fixture(scope="module")
+def converted(tiny_dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("img2occ_infos")
+    create_data(tiny_dataset, "v1.0-mini", out=out, options=ConvertOptions(progress=False))
+    return tiny_dataset, out
+
+
+def stage_overrides(root, infos) -> list[str]:
+    """A tiny Img2Occ on the tiny fixture (192x108 images, 48x27 labels), coarse grid."""
+    return [
+        "stage=img2occ",
+        "dataset=sim_mini",
+        f"dataset.data_root={root}",
+        f"stage.infos_dir={infos}",
+        "grid=coarse",
+        "trainer=cpu",
+        "stage.input_size=[56,96]",
+        "stage.render_size=[27,48]",
+        "stage.model.encoder_channels=[8,16,16]",
+        "stage.model.feature_channels=16",
+        "stage.model.head_channels=32",
+        "stage.model.head_blocks=1",
+        "stage.model.views_per_step=2",
+        "stage.model.depth_l1_weight=1.0",
+        f"stage.model.occupancy_threshold={INITIAL}",
+        f"stage.threshold.candidates={CANDIDATES}",
+        "stage.threshold.max_samples=4",
+    ]
+
+
+@pytest.fixture(scope="module")
+def trained(converted, tmp_path_factory):
+    root, infos = converted
+    run = tmp_path_factory.mktemp("img2occ_run")
+    cfg = compose_cfg(
+        [
+            *stage_overrides(root, infos),
+            f"run_dir={run}",
+            "stage.adjacent_frames=1",
+            "trainer.max_steps=4",
+            "trainer.batch_size=2",
+            "trainer.val_every=2",
+            "trainer.ckpt_every=2",
+            "trainer.log_every=2",
+            "trainer.progress_bar=false",
+            "trainer.tensorboard=false",
+            "trainer.monitor=val/cam/miou",
+            "trainer.monitor_mode=max",
+            "optimizer.lr=2e-3",
+        ]
+    )
+    # Module fixtures run before the function-scoped single-thread fixture: pin it here too
+    # (two OpenMP threads on a loaded 2-core machine make these tiny steps several times slower).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        torch.manual_seed(0)
+        metrics = train(cfg)
+    finally:
+        torch.set_num_threads(threads)
+    return root, infos, run, metrics
+
+
+def test_stage_config_composes_and_validates(converted, tmp_path):
+    root, infos = converted
+    cfg = compose_cfg([*stage_overrides(root, infos), f"run_dir={tmp_path}"])
+    mcfg = img2occ_config(cfg)
+    assert mcfg.grid.shape == (50, 50, 4) and mcfg.input_size == (56, 96)
+    assert mcfg.render_size == (27, 48) and mcfg.adjacent_frames is False
+    assert mcfg.depth_l1_weight == 1.0
+    paper = compose_cfg(["stage=img2occ", f"run_dir={tmp_path}"])
+    assert paper.stage.model.depth_l1_weight == 0.0  # the paper's loss unless an experiment says
+    mini = compose_cfg(["experiment=img2occ_mini", f"run_dir={tmp_path}"])
+    assert mini.stage.model.depth_l1_weight > 0 and mini.trainer.max_minutes == 12
+    assert mini.trainer.monitor == "val/cam/miou" and mini.grid.name == "coarse"
+    img2occ_config(mini)  # sizes satisfy the model's divisibility rule
+    bad = compose_cfg(
+        [*stage_overrides(root, infos), "+stage.model.colour=1", f"run_dir={tmp_path}"]
+    )
+    with pytest.raises(ValueError, match=r"stage.model.colour: not an Img2OccConfig field"):
+        img2occ_config(bad)
+    bad = compose_cfg(
+        [*stage_overrides(root, infos), "+stage.model.grid=occ3d", f"run_dir={tmp_path}"]
+    )
+    with pytest.raises(ValueError, match=r"stage.model.grid: set by the run config"):
+        img2occ_config(bad)
+    bad = compose_cfg(
+        [*stage_overrides(root, infos), "stage.input_size=[50,96]", f"run_dir={tmp_path}"]
+    )
+    with pytest.raises(ValueError, match=r"stage \(Img2OccConfig\): input_size: .*divisible"):
+        img2occ_config(bad)
+    bad = compose_cfg(
+        [*stage_overrides(root, infos), "stage.adjacent_frames=-1", f"run_dir={tmp_path}"]
+    )
+    with pytest.raises(ValueError, match=r"stage.adjacent_frames: expected an integer k >= 0"):
+        img2occ_config(bad)
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("stage.threshold.criterion=f1", r"stage.threshold.criterion: expected 'miou' or 'iou'"),
+        ("stage.threshold.candidates=[0.5,1.5]", r"stage.threshold.candidates: expected values"),
+        ("stage.threshold.max_samples=0", r"stage.threshold.max_samples: expected null or an int"),
+    ],
+)
+def test_bad_threshold_options_fail_before_training(converted, tmp_path, override, message):
+    root, infos = converted
+    run = tmp_path / "run"
+    cfg = compose_cfg([*stage_overrides(root, infos), override, f"run_dir={run}"])
+    with pytest.raises(ValueError, match=message):
+        train(cfg)
+    assert not run.exists()
+
+
+def test_training_gives_finite_occ3d_metrics(trained):
+    _, _, run, metrics = trained
+    assert metrics["step"] == 4 and math.isfinite(metrics["train/loss"])
+    for prefix in ("cam/", "lidar/", "full/"):
+        for name in ("miou", "iou"):
+            assert math.isfinite(metrics[f"val/{prefix}{name}"]), (prefix, name)
+    per_class = [f"val/cam/iou_{c}" for c in OCC3D_CLASSES[:-1]]
+    assert set(per_class) <= set(metrics)
+    assert metrics["val/samples"] == 8
+    assert (run / "checkpoints" / "last.pt").is_file() and (
+        run / "checkpoints" / "best.pt"
+    ).is_file()
+
+
+def test_threshold_chosen_at_train_end_is_in_both_checkpoints(trained):
+    _, _, run, _ = trained
+    summary = json.loads((run / "threshold.json").read_text())
+    for name in ("last.pt", "best.pt"):
+        ckpt = load_checkpoint(run / "checkpoints" / name, "img2occ")
+        record = ckpt["threshold"]
+        assert record["value"] in CANDIDATES and record["initial"] == pytest.approx(INITIAL)
+        assert record["split"] == "train" and record["samples"] == 4
+        assert float(ckpt["model"]["occupancy_threshold"]) == pytest.approx(record["value"])
+        assert summary[name]["value"] == record["value"] and summary[name]["step"] == ckpt["step"]
+        # At 0.99 nothing is occupied; with the chosen threshold the geometry is found.
+        assert record["metrics_at_initial"]["val/cam/iou"] == 0.0
+        assert ckpt["metrics"]["val/cam/iou"] > 0.0
+    assert load_checkpoint(run / "checkpoints" / "best.pt")["step"] == 2  # own weights, own search
+
+
+def test_eval_tool_uses_the_stored_threshold_and_writes_picture_and_table(trained, tmp_path):
+    root, infos, run, _ = trained
+    ckpt = run / "checkpoints" / "last.pt"
+    out = tmp_path / "eval"
+    proc = subprocess.run(
+        [PYTHON, EVAL, *stage_overrides(root, infos), f"ckpt={ckpt}", f"run_dir={out}"],
+        cwd=tmp_path, env=subprocess_env(), capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    metrics = json.loads((out / "eval_metrics.json").read_text())
+    stored = load_checkpoint(ckpt)
+    for key in ("val/cam/miou", "val/cam/iou", "val/lidar/miou", "val/full/iou"):
+        assert metrics[key] == pytest.approx(stored["metrics"][key], rel=1e-9), key
+    png = (out / "img2occ_views.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    table = (out / "occ3d_metrics.md").read_text()
+    assert "camera mask (Occ3D official)" in table and "| 4 | car |" in table
+    assert f"opacity > {stored['threshold']['value']:g}" in table
+    assert f"| {100 * metrics['val/cam/miou']:.2f} |" in table
+
+
+def test_export_tool_writes_labels_readable_by_the_sequence_dataset(trained, tmp_path):
+    root, infos, run, _ = trained
+    ckpt, out = run / "checkpoints" / "last.pt", tmp_path / "pseudo"
+    proc = subprocess.run(
+        [PYTHON, EXPORT, f"ckpt={ckpt}", f"data_root={root}", f"infos_dir={infos}", f"out={out}",
+         "progress=false"],
+        cwd=tmp_path, env=subprocess_env(), capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "exported 16 samples {'train': 8, 'val': 8}" in proc.stdout
+    files = sorted((out / "gts").glob("*/*/labels.npz"))
+    assert len(files) == 16
+    model, _ = load_img2occ(ckpt)
+    val = Img2OccDataset(load_infos(infos, "val"), root, (56, 96), (27, 48), "coarse")
+    item = val[3]
+    meta = item["meta"]
+    labels = load_occ3d_labels(out / "gts" / meta["scene"] / meta["sample_token"] / "labels.npz")
+    batch = {k: v[None] for k, v in item.items() if isinstance(v, torch.Tensor)}
+    with torch.no_grad():
+        expect = model.readout(model(batch, render=False))[0].numpy()
+    np.testing.assert_array_equal(labels.semantics, expect)
+    np.testing.assert_array_equal(labels.mask_camera, item["mask_camera"].numpy())
+    np.testing.assert_array_equal(labels.mask_lidar, item["mask_lidar"].numpy())
+    seq = OccSequenceDataset(
+        load_infos(infos, "val"), root, history=2, future=1, grid="coarse", occ_root=out
+    )
+    window = seq[2]  # frames 2, 3, 4 of the val scene
+    np.testing.assert_array_equal(window["occ"][1].numpy(), expect)
+    info = json.loads((out / "export_info.json").read_text())
+    assert info["files_per_split"] == {"train": 8, "val": 8} and info["grid"]["shape"] == [
+        50,
+        50,
+        4,
+    ]
+
+
+def test_export_refuses_another_stage_checkpoint(converted, tmp_path):
+    root, infos = converted
+    bad = tmp_path / "tok.pt"
+    save_checkpoint(
+        {"schema_version": 1, "stage": "tokenizer", "step": 0, "config": "", "model": {}}, bad
+    )
+    with pytest.raises(
+        CheckpointError, match="written by stage 'tokenizer', expected stage 'img2occ'"
+    ):
+        load_img2occ(bad)
+    proc = subprocess.run(
+        [PYTHON, EXPORT, f"ckpt={bad}", f"data_root={root}", f"infos_dir={infos}",
+         f"out={tmp_path / 'x'}"],
+        cwd=tmp_path, env=subprocess_env(), capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode != 0
+    assert "expected stage 'img2occ'" in proc.stdout + proc.stderr
+    assert not (tmp_path / "x").exists()
