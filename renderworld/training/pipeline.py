@@ -159,6 +159,11 @@ def run_steps(
             echo(f"{header} — up to date, skipped (ran in {stamp.get('seconds', 0):.0f} s before)")
             results.append(StepResult(step.name, "skipped", float(stamp.get("seconds", 0.0)), fp))
             continue
+        if stamp and step.out_dir.exists():
+            # It ran before from other inputs: its outputs are stale, start it over (before
+            # deciding whether to resume, so a stale checkpoint is never continued).
+            echo(f"{header}\n    inputs changed since the last run: clearing {step.out_dir}")
+            shutil.rmtree(step.out_dir)
         command = list(step.command)
         if step.resume_marker is not None and Path(step.resume_marker).exists():
             command += list(step.resume_args)
@@ -166,10 +171,6 @@ def run_steps(
         else:
             echo(header)
         echo(f"    $ {' '.join(command)}")
-        if stamp and step.out_dir.exists():
-            # It ran before from other inputs: its outputs are stale, start it over.
-            echo(f"    inputs changed since the last run: clearing {step.out_dir}")
-            shutil.rmtree(step.out_dir)
         log = log_dir / f"{step.name}.log"
         t0 = time.perf_counter()
         with open(log, "w") as fh:

@@ -46,3 +46,28 @@ def test_unknown_dependency_is_rejected(tmp_path):
     step = Step("x", "x", (sys.executable, "-c", "pass"), tmp_path / "x", depends_on=("nope",))
     with pytest.raises(ValueError, match="depends_on names unknown step 'nope'"):
         run_steps([step], tmp_path / "logs", tmp_path, echo=lambda *_: None)
+
+
+def test_changed_inputs_start_over_instead_of_resuming(tmp_path):
+    out, cfg = tmp_path / "t", tmp_path / "cfg.yaml"
+    cfg.write_text("x: 1\n")
+    code = (
+        "import pathlib, sys; o=pathlib.Path(sys.argv[1]); o.mkdir(exist_ok=True);"
+        "(o/'args').write_text(' '.join(sys.argv[2:])); (o/'last.pt').write_text('x')"
+    )
+
+    def step():
+        return Step(
+            "t", "train", (sys.executable, "-c", code, str(out)), out, inputs=(cfg,),
+            resume_args=("resume=true",), resume_marker=out / "last.pt",
+        )  # fmt: skip
+
+    quiet = lambda *_: None  # noqa: E731
+    run_steps([step()], tmp_path / "logs", tmp_path, echo=quiet)
+    assert (out / "args").read_text() == ""
+    cfg.write_text("x: 2\n")  # finished before, inputs changed: fresh run, no resume
+    run_steps([step()], tmp_path / "logs", tmp_path, echo=quiet)
+    assert (out / "args").read_text() == ""
+    (out / ".step-done.json").unlink()  # interrupted (no stamp) with a checkpoint: resume
+    run_steps([step()], tmp_path / "logs", tmp_path, echo=quiet)
+    assert (out / "args").read_text() == "resume=true"
