@@ -3,7 +3,8 @@
     python tools/run_pipeline.py [out=outputs/demo] [force=[tokenizer]] [train_overrides=[...]]
 
 Steps (each skipped when its inputs did not change; see renderworld.training.pipeline):
-fixtures -> infos -> tokenizer (train, eval) -> world model (train, eval) -> report.
+fixtures -> infos -> tokenizer (train, eval) -> img2occ (train, eval, pseudo labels)
+-> world model (train, eval) -> report.
 """
 
 from __future__ import annotations

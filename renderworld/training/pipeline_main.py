@@ -94,6 +94,53 @@ def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
             depends_on=("tokenizer",),
         ),
     ]
+    i2o = out / "img2occ" / "checkpoints" / "best.pt"
+    pseudo = out / "pseudo_labels"
+    steps += [
+        Step(
+            "img2occ",
+            "train Img2Occ (semantic Gaussians) from LiDAR-projected 2-D labels",
+            (
+                py,
+                "tools/train.py",
+                "experiment=img2occ_mini",
+                *common,
+                f"run_dir={out / 'img2occ'}",
+                *extra,
+            ),  # fmt: skip
+            out / "img2occ",
+            depends_on=("infos",),
+            inputs=(
+                pkg / "img2occ",
+                pkg / "splat",
+                conf / "stage" / "img2occ.yaml",
+                conf / "experiment" / "img2occ_mini.yaml",
+            ),  # fmt: skip
+            resume_args=("resume=true",),
+            resume_marker=out / "img2occ" / "checkpoints" / "last.pt",
+        ),
+        Step(
+            "img2occ_eval",
+            "evaluate 3-D occupancy on mini_val (Occ3D protocol, camera mask)",
+            (
+                py,
+                "tools/eval.py",
+                "experiment=img2occ_mini",
+                *common,
+                f"ckpt={i2o}",
+                f"run_dir={out / 'img2occ_eval'}",
+            ),  # fmt: skip
+            out / "img2occ_eval",
+            depends_on=("img2occ",),
+        ),
+        Step(
+            "pseudo_labels",
+            "export Img2Occ occupancy as Occ3D-layout pseudo labels",
+            (py, "tools/export_occ.py", f"ckpt={i2o}", f"data_root={data}", f"out={pseudo}"),
+            pseudo,
+            depends_on=("img2occ",),
+        ),
+    ]
     if (conf / "stage" / "world_model.yaml").is_file():
         tok = out / "tokenizer" / "checkpoints" / "best.pt"
         steps += [
@@ -217,18 +264,26 @@ def _report(cfg: Any, out: Path, results, seconds: float) -> Path:
         )
         body += "\n\nPer-class IoU (%, full volume):\n\n" + per_class_table(tok, "val/")
         sections.append(("Tokenizer reconstruction (AM-VAE, mini_val, GT occupancy)", body))
+    i2o_table = out / "img2occ_eval" / "occ3d_metrics.md"
+    if i2o_table.is_file():
+        sections.append(("3-D occupancy from cameras (Img2Occ, mini_val)", i2o_table.read_text()))
     wm_tables = sorted((out / "world_model_eval").glob("*.md"))
     if wm_tables:
         body = "\n\n".join(p.read_text() for p in wm_tables)
         sections.append(("Forecasting and planning (mini_val, 3D-Occ setting)", body))
     figures = []
-    for run in ("tokenizer", "world_model"):
+    for run in ("img2occ", "tokenizer", "world_model"):
         png = plot_training_curves(
             out / run / "metrics.csv", out / "figures" / f"curves_{run}.png",
             keys=("train/loss", "val/"),
         )  # fmt: skip
         if png:
             figures.append(f"![{run} training curves](figures/{png.name})")
+    views = out / "img2occ_eval" / "img2occ_views.png"
+    if views.is_file():
+        (out / "figures").mkdir(parents=True, exist_ok=True)
+        (out / "figures" / views.name).write_bytes(views.read_bytes())
+        figures.append(f"![Img2Occ renders vs LiDAR-projected targets](figures/{views.name})")
     bev = _bev_figure(cfg, out)
     if bev:
         figures.append(f"![BEV GT vs reconstruction](figures/{bev.name})")
