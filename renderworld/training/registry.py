@@ -118,6 +118,15 @@ class Stage(ABC):
     def on_train_end(self, model: nn.Module, run_dir: str) -> None:  # noqa: B027 - optional
         """Called on every rank after the last step and the final checkpoint."""
 
+    def write_report(self, metrics: Mapping[str, float], run_dir: str) -> str | None:
+        """Write human-readable reports of final metrics into ``run_dir``; rank 0 only.
+
+        Called by ``evaluate(cfg)`` after ``eval_metrics.json`` and by ``train(cfg)`` after the
+        last validation, with their returned metrics (``val/``-prefixed). Returns text for the
+        entry point to print (e.g. a results table), or None (the default: no report).
+        """
+        return None
+
 
 def register_stage(name: str) -> Callable[[type[Stage]], type[Stage]]:
     """Class decorator registering a ``Stage`` subclass under ``name``.
