@@ -245,6 +245,19 @@ def test_eval_tool_prints_the_table_and_writes_csv_and_markdown(trained, wm_over
     assert "| model |" in md and "| CV-warp |" in md and "OccWorld protocol" in md
 
 
+def test_eval_takes_the_architecture_from_the_checkpoint(trained, wm_overrides, tmp_path):
+    run, metrics = trained
+    ckpt = f"ckpt={run / 'checkpoints' / 'last.pt'}"
+    default_arch = [o for o in wm_overrides if o not in TINY_MODEL]
+    cfg = compose_cfg([*default_arch, ckpt, f"run_dir={tmp_path / 'a'}"], "eval")
+    with pytest.warns(UserWarning, match=r"stage\.model: embed_dim=16 \(not 128\)"):
+        again = evaluate(cfg)
+    assert again["val/model/miou_1s"] == pytest.approx(metrics["val/model/miou_1s"], rel=1e-9)
+    cfg = compose_cfg([*wm_overrides, ckpt, f"run_dir={tmp_path / 'b'}", "stage.future=2"], "eval")
+    with pytest.raises(ValueError, match=r"stage\.future: the checkpoint .* trained with 4"):
+        evaluate(cfg)
+
+
 def test_tokenizer_checkpoint_errors_name_the_key(wm_overrides, tmp_path, tokenizer_ckpt):
     base = [o for o in wm_overrides if not o.startswith("stage.tokenizer_ckpt=")]
     with pytest.raises(ValueError, match=r"stage\.tokenizer_ckpt: required config value"):

@@ -33,7 +33,7 @@ from torch import nn
 from torch.utils.data import Dataset
 
 from renderworld.constants import FUTURE_FRAMES
-from renderworld.data import OccSequenceDataset, load_infos
+from renderworld.data import load_infos
 from renderworld.metrics import PlanningMetric
 from renderworld.planning import register_tokenizer, save_planner_bundle
 from renderworld.tokenizer import SceneTokenizer, Tokens, build_tokenizer
@@ -47,7 +47,6 @@ from renderworld.world import (
     WorldModelConfig,
     constant_velocity_trajectory,
     copy_paste_forecast,
-    frame_poses_from_poses,
     teacher_forcing_split,
     warp_constant_velocity_forecast,
     world_model_loss,
@@ -55,7 +54,6 @@ from renderworld.world import (
 
 __all__ = [
     "WorldModelStage",
-    "WorldModelWindows",
     "world_model_config",
     "export_planner_bundle",
     "TOKENIZER_KIND",
@@ -130,42 +128,6 @@ def world_model_config(cfg: Any, tokenizer_cfg: Any) -> WorldModelConfig:
     )
 
 
-class WorldModelWindows(Dataset):
-    """``OccSequenceDataset`` windows plus ``future_poses`` float32 [F, 3].
-
-    ``future_poses[k]`` = (x, y, yaw) of future frame k's ego frame in the current (last
-    history) ego frame, metres / radians: where each future GT occupancy frame lies, for the
-    collision-vs-occupancy metric.
-    """
-
-    def __init__(self, infos, data_root, grid, history, future, occ_root=None):
-        self.seq = OccSequenceDataset(
-            infos, data_root, history=history, future=future, grid=grid, occ_root=occ_root
-        )
-
-    def __len__(self) -> int:
-        return len(self.seq)
-
-    def __getitem__(self, i: int) -> dict[str, Any]:
-        item = self.seq[i]
-        seq = self.seq
-        start = int(seq.starts[int(i) % len(seq)])
-        poses = seq.ego2global[start : start + seq.history + seq.future]
-        rel = frame_poses_from_poses(poses, seq.history - 1)[seq.history :]
-        item["future_poses"] = torch.from_numpy(rel.astype("float32"))
-        return item
-
-
-def _frame_keys(batch: dict, b: int, t: int) -> list[list[str]]:
-    """Sample tokens [B][T] of a collated batch (``meta.sample_tokens`` is T lists of B)."""
-    toks = batch["meta"]["sample_tokens"]
-    if len(toks) != t or any(len(col) != b for col in toks):
-        raise ValueError(
-            f"batch: expected meta.sample_tokens as {t} lists of {b} tokens (default collate)"
-        )
-    return [[str(toks[j][i]) for j in range(t)] for i in range(b)]
-
-
 def _no_autocast(device: torch.device):
     if device.type == "cuda":
         return torch.autocast(device_type="cuda", enabled=False)
@@ -217,7 +179,7 @@ class WorldModelStage(Stage):
         """
         occ = batch["occ"]
         b = occ.shape[0]
-        keys = [row[:frames] for row in _frame_keys(batch, b, occ.shape[1])]
+        keys = [row[:frames] for row in wme.frame_keys(batch, b, occ.shape[1])]
         tok = self._tokenizer_on(device)
         cache = self._codes if self.settings.cache_tokens else {}
         todo: dict[str, tuple[int, int]] = {}
@@ -239,7 +201,40 @@ class WorldModelStage(Stage):
 
     # ------------------------------------------------------------------ Stage API
     def build_model(self, cfg: Any) -> nn.Module:
-        return WorldModel(world_model_config(cfg, self.tokenizer.cfg))
+        """The world model; when evaluating (``ckpt`` set) its architecture is the checkpoint's.
+
+        ``stage.model`` keys that differ from the checkpoint's are taken from it with a warning
+        (they are architecture only); a different ``stage.history`` / ``stage.future`` is an
+        error (they define the evaluation protocol and the model's window).
+        """
+        mine = world_model_config(cfg, self.tokenizer.cfg)
+        ckpt = cfg.get("ckpt") if cfg.get("task") == "eval" else None
+        if not ckpt or not Path(str(ckpt)).is_file():
+            return WorldModel(mine)
+        stored = OmegaConf.create(load_checkpoint(ckpt, expected_stage="world_model")["config"])
+        _check_same_tokenizer(stored, self.settings.tokenizer_ckpt)
+        theirs = world_model_config(stored, self.tokenizer.cfg)
+        diff = [
+            f.name
+            for f in fields(WorldModelConfig)
+            if getattr(mine, f.name) != getattr(theirs, f.name)
+        ]
+        for key, name in (("history_frames", "history"), ("future_frames", "future")):
+            if key in diff:
+                raise ValueError(
+                    f"stage.{name}: the checkpoint {str(ckpt)!r} was trained with "
+                    f"{getattr(theirs, key)}, this run has {getattr(mine, key)}; pass "
+                    f"stage.{name}={getattr(theirs, key)}"
+                )
+        if diff:
+            warnings.warn(
+                "stage.model: "
+                + ", ".join(f"{k}={getattr(theirs, k)} (not {getattr(mine, k)})" for k in diff)
+                + f" taken from the checkpoint {str(ckpt)!r}",
+                UserWarning,
+                stacklevel=2,
+            )
+        return WorldModel(theirs)
 
     def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
         _ = self.tokenizer  # a wrong stage.tokenizer_ckpt fails before any data is read
@@ -247,9 +242,9 @@ class WorldModelStage(Stage):
         occ_root, root = cfg.stage.get("occ_root"), str(cfg.dataset.data_root)
         st = self.settings
 
-        def windows(split: str) -> WorldModelWindows:
+        def windows(split: str) -> wme.WorldModelWindows:
             infos = load_infos(folder, split)
-            return WorldModelWindows(infos, root, self.grid, st.history, st.future, occ_root)
+            return wme.WorldModelWindows(infos, root, self.grid, st.history, st.future, occ_root)
 
         return windows(cfg.dataset.train_split), windows(cfg.dataset.val_split)
 
@@ -357,6 +352,19 @@ class WorldModelStage(Stage):
         return wme.write_report(metrics, run_dir, self.horizons, header)
 
 
+def _check_same_tokenizer(trained_cfg: Any, tokenizer_ckpt) -> None:
+    """Warn when ``tokenizer_ckpt`` is not the file the world model was trained on."""
+    trained_on = trained_cfg.stage.get("tokenizer_ckpt")
+    if trained_on and Path(str(trained_on)).resolve() != Path(str(tokenizer_ckpt)).resolve():
+        warnings.warn(
+            f"tokenizer_ckpt: {str(tokenizer_ckpt)!r} differs from the tokenizer the world "
+            f"model was trained on ({trained_on!r}); results are only valid if they hold the "
+            "same weights",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
 def export_planner_bundle(
     world_model_ckpt: str | os.PathLike,
     tokenizer_ckpt: str | os.PathLike,
@@ -381,15 +389,7 @@ def export_planner_bundle(
 
     ckpt = load_checkpoint(world_model_ckpt, expected_stage="world_model")
     cfg = OmegaConf.create(ckpt["config"])
-    trained_on = cfg.stage.get("tokenizer_ckpt")
-    if trained_on and Path(str(trained_on)).resolve() != Path(tokenizer_ckpt).resolve():
-        warnings.warn(
-            f"tokenizer_ckpt: {str(tokenizer_ckpt)!r} differs from the tokenizer the world "
-            f"model was trained on ({trained_on!r}); the bundle is only valid if they hold "
-            "the same weights",
-            UserWarning,
-            stacklevel=2,
-        )
+    _check_same_tokenizer(cfg, tokenizer_ckpt)
     tokenizer = load_tokenizer(tokenizer_ckpt, "cpu")
     model = WorldModel(world_model_config(cfg, tokenizer.cfg))
     check_state_dict_keys(model, ckpt["model"], source=f"checkpoint {str(world_model_ckpt)!r}")

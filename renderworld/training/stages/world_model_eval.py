@@ -1,4 +1,7 @@
-"""Evaluation statistics and the report of the ``world_model`` stage.
+"""Evaluation data, statistics and report of the ``world_model`` stage.
+
+:class:`WorldModelWindows` adds each future frame's pose to the sequence windows (for the
+collision-vs-occupancy metric).
 
 The metrics are exactly :mod:`renderworld.metrics`': a rank accumulates counts over its shard
 (per-step forecast confusions with ``torch.bincount`` on the device, the same counts as
@@ -19,15 +22,21 @@ import io
 import math
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
+from torch.utils.data import Dataset
 
 from renderworld.constants import KEYFRAME_DT, NUM_OCC3D_CLASSES, GridSpec
+from renderworld.data import OccSequenceDataset
 from renderworld.metrics import FORECAST_HORIZONS_S, ForecastMetric, PlanningMetric
 from renderworld.training.stages.common import confusion_stats
+from renderworld.world import frame_poses_from_poses
 
 __all__ = [
+    "WorldModelWindows",
+    "frame_keys",
     "METHODS",
     "FORECASTERS",
     "PLANNERS",
@@ -55,6 +64,42 @@ FORECASTERS = tuple(m[0] for m in METHODS if m[2])
 PLANNERS = tuple(m[0] for m in METHODS if m[3])
 REPORT_BASENAME = "world_model_eval"
 _COLL_KEYS = ("hit", "evaluated", "gt_skipped", "outside")
+
+
+class WorldModelWindows(Dataset):
+    """``OccSequenceDataset`` windows plus ``future_poses`` float32 [F, 3].
+
+    ``future_poses[k]`` = (x, y, yaw) of future frame k's ego frame in the current (last
+    history) ego frame, metres / radians: where each future GT occupancy frame lies, for the
+    collision-vs-occupancy metric.
+    """
+
+    def __init__(self, infos, data_root, grid, history, future, occ_root=None):
+        self.seq = OccSequenceDataset(
+            infos, data_root, history=history, future=future, grid=grid, occ_root=occ_root
+        )
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        item = self.seq[i]
+        seq = self.seq
+        start = int(seq.starts[int(i) % len(seq)])
+        poses = seq.ego2global[start : start + seq.history + seq.future]
+        rel = frame_poses_from_poses(poses, seq.history - 1)[seq.history :]
+        item["future_poses"] = torch.from_numpy(rel.astype("float32"))
+        return item
+
+
+def frame_keys(batch: dict, b: int, t: int) -> list[list[str]]:
+    """Sample tokens [B][T] of a collated batch (``meta.sample_tokens`` is T lists of B)."""
+    toks = batch["meta"]["sample_tokens"]
+    if len(toks) != t or any(len(col) != b for col in toks):
+        raise ValueError(
+            f"batch: expected meta.sample_tokens as {t} lists of {b} tokens (default collate)"
+        )
+    return [[str(toks[j][i]) for j in range(t)] for i in range(b)]
 
 
 def horizons_for(future: int) -> tuple[float, ...]:
