@@ -96,6 +96,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
             logger.close()
         if info.is_main:
             log.info("finished %s at step %d: %s", stage_name, trainer.step, metrics)
+            _print_report(stage, metrics, run_dir)
         return metrics
     finally:
         shutdown_distributed(info)
@@ -142,6 +143,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
             (run_dir / "eval_metrics.json").write_text(json.dumps(out, indent=2) + "\n")
             log.info("evaluated %s: %s", ckpt_path, metrics)
             stage.on_eval_end(model, dict(metrics), str(run_dir))
+            _print_report(stage, metrics, run_dir)
         return metrics
     finally:
         shutdown_distributed(info)
@@ -245,6 +247,13 @@ def _build_stage(cfg: DictConfig) -> Stage:
     module = cfg.stage.get("_target_module_")
     cls = get_stage(str(cfg.stage.name), str(module) if module else None)
     return cls(cfg)
+
+
+def _print_report(stage: Stage, metrics: dict[str, float], run_dir: Path) -> None:
+    """The stage's optional report (``Stage.write_report``), printed for the user."""
+    report = stage.write_report(metrics, str(run_dir))
+    if report:
+        print(report, flush=True)
 
 
 def _quiet_other_ranks(info: DistInfo) -> None:

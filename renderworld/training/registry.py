@@ -127,6 +127,15 @@ class Stage(ABC):
         checkpoint's weights, on the evaluation device; ``metrics`` are the returned ones.
         """
 
+    def write_report(self, metrics: Mapping[str, float], run_dir: str) -> str | None:
+        """Write human-readable reports of final metrics into ``run_dir``; rank 0 only.
+
+        Called by ``evaluate(cfg)`` after ``eval_metrics.json`` and by ``train(cfg)`` after the
+        last validation, with their returned metrics (``val/``-prefixed). Returns text for the
+        entry point to print (e.g. a results table), or None (the default: no report).
+        """
+        return None
+
 
 def register_stage(name: str) -> Callable[[type[Stage]], type[Stage]]:
     """Class decorator registering a ``Stage`` subclass under ``name``.

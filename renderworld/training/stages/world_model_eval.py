@@ -1,0 +1,390 @@
+"""Evaluation data, statistics and report of the ``world_model`` stage.
+
+:class:`WorldModelWindows` adds each future frame's pose to the sequence windows (for the
+collision-vs-occupancy metric).
+
+The metrics are exactly :mod:`renderworld.metrics`': a rank accumulates counts over its shard
+(per-step forecast confusions with ``torch.bincount`` on the device, the same counts as
+:class:`~renderworld.metrics.ForecastMetric`; a :class:`~renderworld.metrics.PlanningMetric`
+per planner, flattened by :func:`planning_to_stats`) into float64 tensors the loop sums over
+ranks; ``*_from_stats`` rebuild the accumulators from the summed counts and call their
+``compute()``. Sums of counts are exact, so a sharded evaluation equals the single-process one.
+
+Methods (DESIGN.md §4): ``model`` (forecast + plan), ``copy_paste`` (current frame repeated),
+``warp_cv`` (current frame warped under constant velocity), ``cv_traj`` (last displacement
+repeated).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from renderworld.constants import KEYFRAME_DT, NUM_OCC3D_CLASSES, GridSpec
+from renderworld.data import OccSequenceDataset
+from renderworld.metrics import FORECAST_HORIZONS_S, ForecastMetric, PlanningMetric
+from renderworld.training.stages.common import confusion_stats
+from renderworld.world import frame_poses_from_poses
+
+__all__ = [
+    "WorldModelWindows",
+    "frame_keys",
+    "METHODS",
+    "FORECASTERS",
+    "PLANNERS",
+    "empty_forecast_stats",
+    "add_forecast_stats",
+    "update_planning",
+    "REPORT_BASENAME",
+    "horizons_for",
+    "forecast_to_stats",
+    "forecast_from_stats",
+    "planning_to_stats",
+    "planning_from_stats",
+    "report_tables",
+    "write_report",
+]
+
+#: (metric prefix, table label, has an occupancy forecast, has a trajectory)
+METHODS: tuple[tuple[str, str, bool, bool], ...] = (
+    ("model", "model", True, True),
+    ("copy_paste", "Copy&Paste", True, False),
+    ("warp_cv", "CV-warp", True, False),
+    ("cv_traj", "CV-trajectory", False, True),
+)
+FORECASTERS = tuple(m[0] for m in METHODS if m[2])
+PLANNERS = tuple(m[0] for m in METHODS if m[3])
+REPORT_BASENAME = "world_model_eval"
+_COLL_KEYS = ("hit", "evaluated", "gt_skipped", "outside")
+
+
+class WorldModelWindows(Dataset):
+    """``OccSequenceDataset`` windows plus ``future_poses`` float32 [F, 3].
+
+    ``future_poses[k]`` = (x, y, yaw) of future frame k's ego frame in the current (last
+    history) ego frame, metres / radians: where each future GT occupancy frame lies, for the
+    collision-vs-occupancy metric.
+    """
+
+    def __init__(self, infos, data_root, grid, history, future, occ_root=None):
+        self.seq = OccSequenceDataset(
+            infos, data_root, history=history, future=future, grid=grid, occ_root=occ_root
+        )
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        item = self.seq[i]
+        seq = self.seq
+        start = int(seq.starts[int(i) % len(seq)])
+        poses = seq.ego2global[start : start + seq.history + seq.future]
+        rel = frame_poses_from_poses(poses, seq.history - 1)[seq.history :]
+        item["future_poses"] = torch.from_numpy(rel.astype("float32"))
+        return item
+
+
+def frame_keys(batch: dict, b: int, t: int) -> list[list[str]]:
+    """Sample tokens [B][T] of a collated batch (``meta.sample_tokens`` is T lists of B)."""
+    toks = batch["meta"]["sample_tokens"]
+    if len(toks) != t or any(len(col) != b for col in toks):
+        raise ValueError(
+            f"batch: expected meta.sample_tokens as {t} lists of {b} tokens (default collate)"
+        )
+    return [[str(toks[j][i]) for j in range(t)] for i in range(b)]
+
+
+def horizons_for(future: int) -> tuple[float, ...]:
+    """Reported horizons (s) for ``future`` rolled-out frames: 1/2/3 s where they exist.
+
+    With fewer than 2 future frames (no whole second) the last frame's time is reported.
+    """
+    hs = tuple(h for h in FORECAST_HORIZONS_S if round(h / KEYFRAME_DT) <= future)
+    return hs or (future * KEYFRAME_DT,)
+
+
+def _hname(h: float) -> str:
+    return f"{h:g}s"
+
+
+def _f64(x) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(x), dtype=torch.float64)
+
+
+# ------------------------------------------------------------------------ forecast
+def forecast_to_stats(
+    pred: torch.Tensor,
+    gt: torch.Tensor,
+    valid: torch.Tensor,
+    mask: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-step confusion counts of a batch of forecasts, on their device.
+
+    The counts are those of :class:`~renderworld.metrics.ForecastMetric` (18x18, rows = GT,
+    frames with ``valid`` False left out and counted), computed with ``torch.bincount`` so
+    they stay on the accelerator.
+
+    Args:
+        pred: [B, S, X, Y, Z] integer labels of frames t+1..t+S.
+        gt: same shape, ground truth.
+        valid: [B, S] bool.
+        mask: optional [B, S, X, Y, Z] bool region.
+
+    Returns:
+        (confusion [S, 18, 18] float64, skipped frames [] float64).
+    """
+    if pred.shape != gt.shape or pred.dim() != 5 or tuple(valid.shape) != tuple(pred.shape[:2]):
+        raise ValueError(
+            f"pred/gt/valid: expected [B, S, X, Y, Z] x2 and [B, S], got {tuple(pred.shape)}, "
+            f"{tuple(gt.shape)}, {tuple(valid.shape)}"
+        )
+    steps = [
+        confusion_stats(
+            pred[valid[:, s], s], gt[valid[:, s], s], None if mask is None else mask[valid[:, s], s]
+        )
+        for s in range(pred.shape[1])
+    ]
+    return torch.stack(steps), (~valid).sum().double()
+
+
+def empty_forecast_stats(steps: int, device: torch.device) -> dict[str, torch.Tensor]:
+    """Zero ``<method>/<full|cam>/confusion`` [S, 18, 18] and ``.../skipped`` [] counters."""
+    out = {}
+    for p in FORECASTERS:
+        for region in ("full", "cam"):
+            out[f"{p}/{region}/confusion"] = torch.zeros(
+                steps, NUM_OCC3D_CLASSES, NUM_OCC3D_CLASSES, dtype=torch.float64, device=device
+            )
+            out[f"{p}/{region}/skipped"] = torch.zeros((), dtype=torch.float64, device=device)
+    return out
+
+
+def add_forecast_stats(
+    stats: dict[str, torch.Tensor],
+    forecasts: Mapping[str, torch.Tensor],
+    gt: torch.Tensor,
+    mask_camera: torch.Tensor,
+    valid: torch.Tensor,
+) -> None:
+    """Add each method's [B, S, X, Y, Z] forecast to its full-volume and camera-mask counts."""
+    for p, pred in forecasts.items():
+        for region, mask in (("full", None), ("cam", mask_camera)):
+            conf, skipped = forecast_to_stats(pred, gt, valid, mask)
+            for name, value in (("confusion", conf), ("skipped", skipped)):
+                key = f"{p}/{region}/{name}"
+                stats[key] += value.to(stats[key].device)
+
+
+def forecast_from_stats(
+    stats: Mapping[str, torch.Tensor],
+    key: str,
+    horizons_s: tuple[float, ...],
+    mask_name: str | None = None,
+) -> dict[str, float]:
+    """Forecast metrics of rank-summed counts (see :func:`forecast_to_stats`).
+
+    Returns:
+        ``miou_<h>``, ``miou_avg``, ``iou_<h>``, ``iou_avg`` (h = ``1s``...) and per step
+        ``miou_step<k>``, ``iou_step<k>`` (k = 1..S), as fractions.
+    """
+    conf = stats[f"{key}/confusion"].detach().cpu().double().numpy()
+    metric = ForecastMetric(steps=conf.shape[0], horizons_s=horizons_s, mask_name=mask_name)
+    for step, c in zip(metric.per_step, conf):
+        step.confusion = np.rint(c).astype(np.int64)
+    metric.skipped_frames = int(round(float(stats[f"{key}/skipped"])))
+    res = metric.compute()
+    out: dict[str, float] = {}
+    for name in ("miou", "iou"):
+        for h in metric.horizons_s:
+            out[f"{name}_{_hname(h)}"] = float(res[f"{name}@{h:g}s"])
+        out[f"{name}_avg"] = float(res[f"{name}_avg"])
+        for k, v in enumerate(res[f"{name}_per_step"], start=1):
+            out[f"{name}_step{k}"] = float(v)
+    return out
+
+
+# ------------------------------------------------------------------------ planning
+def planning_to_stats(metric: PlanningMetric, key: str) -> dict[str, torch.Tensor]:
+    """Float64 counts of ``metric``: L2 error sums/counts per step and collision counts."""
+    out = {
+        f"{key}/err_sum": _f64(metric.err_sum),
+        f"{key}/err_count": _f64(metric.err_count),
+        f"{key}/masked_steps": _f64(metric.masked_steps),
+        f"{key}/num_samples": _f64(metric.num_samples),
+    }
+    for src in PlanningMetric.SOURCES:  # zeros when never updated (an empty shard)
+        for k in _COLL_KEYS:
+            out[f"{key}/{src}_{k}"] = _f64(metric.coll[src][k])
+    return out
+
+
+def update_planning(
+    plan: Mapping[str, PlanningMetric],
+    trajectories: Mapping[str, torch.Tensor],
+    batch: Mapping,
+    future_occ: torch.Tensor,
+    valid: torch.Tensor,
+) -> None:
+    """Add each planner's [B, S, 2] trajectory vs a batch's GT (trajectory, boxes, occupancy).
+
+    Uses ``future_traj``, ``future_boxes`` (x, y, length, width, yaw columns),
+    ``future_boxes_mask`` and ``future_poses`` of the batch; ``future_occ`` [B, S, X, Y, Z].
+    """
+    boxes = batch["future_boxes"][..., :5].cpu().numpy()
+    boxes_ok = batch["future_boxes_mask"].cpu().numpy()
+    poses = batch["future_poses"].cpu().numpy()
+    occ = future_occ.cpu().numpy()
+    for p, traj in trajectories.items():
+        plan[p].update(
+            traj.float(),
+            batch["future_traj"].float(),
+            valid=valid.cpu(),
+            agent_boxes=list(boxes),
+            agent_valid=list(boxes_ok),
+            occupancy=occ,
+            occupancy_poses=poses,
+        )
+
+
+def planning_from_stats(
+    stats: Mapping[str, torch.Tensor],
+    key: str,
+    horizons_s: tuple[float, ...],
+    grid: GridSpec,
+) -> dict[str, float]:
+    """Planning metrics of rank-summed counts (see :func:`planning_to_stats`).
+
+    Returns:
+        ``l2_at_horizon_<h>`` / ``l2_mean_to_horizon_<h>`` (+ ``_avg``) in metres,
+        ``collision_<boxes|occupancy>_<at_horizon|mean_to_horizon>_<h>`` (+ ``_avg``) as
+        fractions, ``collision_<source>_gt_skipped`` / ``_outside_grid`` counts.
+    """
+
+    def ints(name: str) -> np.ndarray:
+        return np.rint(stats[f"{key}/{name}"].detach().cpu().double().numpy()).astype(np.int64)
+
+    err_sum = stats[f"{key}/err_sum"].detach().cpu().double().numpy()
+    metric = PlanningMetric(steps=len(err_sum), horizons_s=horizons_s, occupancy_grid=grid)
+    metric.err_sum = err_sum.copy()
+    metric.err_count = ints("err_count")
+    metric.masked_steps = int(ints("masked_steps"))
+    metric.num_samples = int(ints("num_samples"))
+    for src in PlanningMetric.SOURCES:
+        metric.sources_seen.add(src)
+        for k in _COLL_KEYS:
+            metric.coll[src][k] = ints(f"{src}_{k}")
+    res = metric.compute()
+    out: dict[str, float] = {}
+    for name, value in res.items():
+        if isinstance(value, (int, float)) and name not in ("num_samples", "masked_steps"):
+            out[name.replace("@", "_")] = float(value)
+    return out
+
+
+# ------------------------------------------------------------------------ report
+def _columns(horizons_s: tuple[float, ...]) -> list[tuple[str, str, str, float]]:
+    """(header, metric suffix, csv column, scale) of the printed table."""
+    hs = [_hname(h) for h in horizons_s] + ["avg"]
+    cols = []
+    for label, metric, unit, scale in (
+        ("mIoU", "miou", "pct", 100.0),
+        ("IoU", "iou", "pct", 100.0),
+        ("L2", "l2_at_horizon", "m", 1.0),
+        ("Col", "collision_boxes_at_horizon", "pct", 100.0),
+    ):
+        for h in hs:
+            cols.append((f"{label} {h}", f"{metric}_{h}", f"{metric}_{h}_{unit}", scale))
+    return cols
+
+
+def _csv_columns(horizons_s: tuple[float, ...]) -> list[tuple[str, str, float]]:
+    """(csv column, metric suffix, scale): the table's columns plus the other conventions."""
+    hs = [_hname(h) for h in horizons_s] + ["avg"]
+    out = []
+    for metric, unit, scale in (
+        ("miou", "pct", 100.0),
+        ("iou", "pct", 100.0),
+        ("cam/miou", "pct", 100.0),
+        ("cam/iou", "pct", 100.0),
+        ("l2_at_horizon", "m", 1.0),
+        ("l2_mean_to_horizon", "m", 1.0),
+        ("collision_boxes_at_horizon", "pct", 100.0),
+        ("collision_boxes_mean_to_horizon", "pct", 100.0),
+        ("collision_occupancy_at_horizon", "pct", 100.0),
+        ("collision_occupancy_mean_to_horizon", "pct", 100.0),
+    ):
+        for h in hs:
+            out.append((f"{metric.replace('/', '_')}_{h}_{unit}", f"{metric}_{h}", scale))
+    for src in PlanningMetric.SOURCES:
+        for what in ("gt_skipped", "outside_grid"):
+            out.append((f"collision_{src}_{what}", f"collision_{src}_{what}", 1.0))
+    return out
+
+
+def _value(metrics: Mapping[str, float], prefix: str, suffix: str, scale: float) -> float | None:
+    key = f"{prefix}/{suffix}"
+    for k in (key, f"val/{key}"):
+        if k in metrics:
+            return float(metrics[k]) * scale
+    return None
+
+
+def _fmt(v: float | None, width: int) -> str:
+    if v is None:
+        return f"{'-':>{width}}"
+    if math.isnan(v):
+        return f"{'nan':>{width}}"
+    return f"{v:>{width}.2f}"
+
+
+def report_tables(
+    metrics: Mapping[str, float], horizons_s: tuple[float, ...], header: list[str]
+) -> tuple[str, str, str]:
+    """The evaluation table as (plain text, markdown, CSV).
+
+    Args:
+        metrics: the stage's metrics (``<method>/<name>``, optionally ``val/``-prefixed).
+        horizons_s: the reported horizons.
+        header: description lines (split, protocol) printed above the table.
+    """
+    cols = _columns(horizons_s)
+    width = max(9, *(len(c[0]) + 1 for c in cols))
+    lines = [f"# {h}" for h in header]
+    lines.append(f"{'method':<15}" + "".join(f"{c[0]:>{width}}" for c in cols))
+    md = [*(f"> {h}  " for h in header), ""]
+    md.append("| method | " + " | ".join(c[0] for c in cols) + " |")
+    md.append("|---|" + "---:|" * len(cols))
+    csv_cols = _csv_columns(horizons_s)
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["method", *(c[0] for c in csv_cols)])
+    for prefix, label, _, _ in METHODS:
+        vals = [_value(metrics, prefix, c[1], c[3]) for c in cols]
+        lines.append(f"{label:<15}" + "".join(_fmt(v, width) for v in vals))
+        md.append(f"| {label} | " + " | ".join(_fmt(v, 0).strip() for v in vals) + " |")
+        row = [_value(metrics, prefix, c[1], c[2]) for c in csv_cols]
+        writer.writerow([label, *("" if v is None else repr(v) for v in row)])
+    return "\n".join(lines), "\n".join(md) + "\n", buf.getvalue()
+
+
+def write_report(
+    metrics: Mapping[str, float],
+    run_dir: str | Path,
+    horizons_s: tuple[float, ...],
+    header: list[str],
+) -> str:
+    """Write ``world_model_eval.csv`` and ``.md`` into ``run_dir``; return the text table."""
+    text, md, csv_text = report_tables(metrics, horizons_s, header)
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / f"{REPORT_BASENAME}.md").write_text(md)
+    (run_dir / f"{REPORT_BASENAME}.csv").write_text(csv_text)
+    return text

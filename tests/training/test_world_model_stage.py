@@ -1,0 +1,318 @@
+"""The ``world_model`` stage on the converted tiny fixture with a tiny tokenizer checkpoint.
+
+The tiny fixture has 8 keyframes per scene (one train scene, one val scene), so the stage runs
+with history 3 and future 4 (2 windows per split; horizons 1 s and 2 s).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader, Subset
+
+from data_converters import ConvertOptions, create_data
+from renderworld.data import OccSequenceDataset, load_infos
+from renderworld.metrics import ForecastMetric, OccupancyMetric, PlanningMetric
+from renderworld.planning import PlanRequest, load_planner
+from renderworld.training import CheckpointError, evaluate, train
+from renderworld.training.checkpoint import load_checkpoint
+from renderworld.training.stages.world_model import (
+    WorldModelStage,
+    export_planner_bundle,
+    world_model_config,
+)
+from renderworld.world import WorldModel, constant_velocity_trajectory, copy_paste_forecast
+
+from .conftest import PYTHON, REPO, compose_cfg, subprocess_env
+
+HISTORY, FUTURE = 3, 4
+TINY_MODEL = [
+    "stage.model.embed_dim=16",
+    "stage.model.num_heads=2",
+    "stage.model.num_scales=2",
+    "stage.model.layers_per_scale=[1,1]",
+]
+QUIET = ["trainer.progress_bar=false", "trainer.tensorboard=false"]
+
+
+@pytest.fixture(scope="module")
+def converted(tiny_dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("wm_infos")
+    create_data(tiny_dataset, "v1.0-mini", out=out, options=ConvertOptions(progress=False))
+    return tiny_dataset, out
+
+
+def _data(converted) -> list[str]:
+    root, infos = converted
+    return ["grid=coarse", "trainer=cpu", f"dataset.data_root={root}", f"stage.infos_dir={infos}"]
+
+
+@pytest.fixture(scope="module")
+def tokenizer_ckpt(converted, tmp_path_factory):
+    """A tiny AM-VAE trained for 2 steps through the tokenizer stage's own checkpoint format."""
+    run = tmp_path_factory.mktemp("tok") / "run"
+    cfg = compose_cfg([
+        "stage=tokenizer", *_data(converted), f"run_dir={run}", *QUIET,
+        "trainer.max_steps=2", "trainer.batch_size=2", "trainer.val_every=0",
+        "trainer.monitor=val/miou", "trainer.monitor_mode=max",
+        "stage.model.latent_channels=8", "stage.model.codebook_size=32",
+        "stage.model.base_channels=8", "stage.model.num_res_blocks=1",
+        "stage.model.attention=false",
+    ])  # fmt: skip
+    train(cfg)
+    return run / "checkpoints" / "last.pt"
+
+
+@pytest.fixture(scope="module")
+def wm_overrides(converted, tokenizer_ckpt):
+    return [
+        "stage=world_model", *_data(converted), f"stage.tokenizer_ckpt={tokenizer_ckpt}",
+        f"stage.history={HISTORY}", f"stage.future={FUTURE}", *TINY_MODEL, *QUIET,
+        "trainer.batch_size=2",
+    ]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def trained(wm_overrides, tmp_path_factory):
+    """A world model trained for 4 steps (validated at the end); returns (run_dir, metrics)."""
+    run = tmp_path_factory.mktemp("wm") / "run"
+    cfg = compose_cfg([*wm_overrides, f"run_dir={run}", "trainer.max_steps=4",
+                       "trainer.val_every=4", "trainer.monitor=val/model/miou_avg",
+                       "trainer.monitor_mode=max"])  # fmt: skip
+    return run, train(cfg)
+
+
+def _stage_and_model(wm_overrides, tmp_path):
+    cfg = compose_cfg([*wm_overrides, f"run_dir={tmp_path}"])
+    stage = WorldModelStage(cfg)
+    train_set, val_set = stage.build_datasets(cfg)
+    model = stage.build_model(cfg).eval()
+    return stage, model, train_set, val_set
+
+
+def test_trains_and_checkpoints_only_the_world_model(trained, tokenizer_ckpt):
+    run, metrics = trained
+    ckpt = load_checkpoint(run / "checkpoints" / "last.pt", expected_stage="world_model")
+    assert ckpt["step"] == 4
+    tok_keys = load_checkpoint(tokenizer_ckpt)["model"].keys()
+    assert not set(ckpt["model"]) & set(tok_keys), "the frozen tokenizer must not be saved"
+    model = WorldModel(world_model_config(_cfg_of(ckpt), _tok_cfg(tokenizer_ckpt)))
+    model.load_state_dict(ckpt["model"], strict=True)
+    assert (run / "checkpoints" / "best.pt").exists(), "monitor val/model/miou_avg exists"
+    # Finite metrics for the model and every baseline, at the horizons that exist (1 s, 2 s).
+    for key in [
+        "val/loss", "val/token_ce", "val/l2",
+        "val/model/miou_1s", "val/model/iou_2s", "val/model/miou_avg", "val/model/cam/miou_1s",
+        "val/model/l2_at_horizon_1s", "val/model/l2_mean_to_horizon_2s",
+        "val/model/collision_boxes_at_horizon_1s", "val/model/collision_occupancy_at_horizon_avg",
+        "val/copy_paste/miou_1s", "val/copy_paste/iou_avg", "val/warp_cv/miou_2s",
+        "val/warp_cv/cam/iou_1s", "val/cv_traj/l2_at_horizon_avg",
+        "val/cv_traj/collision_boxes_at_horizon_2s",
+    ]:  # fmt: skip
+        assert math.isfinite(metrics[key]), key
+    assert "val/model/miou_3s" not in metrics, "future=4 has no 3 s horizon"
+    assert metrics["val/num_windows"] == 2
+    # train() writes the report of its final validation too.
+    assert (run / "world_model_eval.csv").exists() and (run / "world_model_eval.md").exists()
+
+
+def _cfg_of(ckpt):
+    from omegaconf import OmegaConf
+
+    return OmegaConf.create(ckpt["config"])
+
+
+def _tok_cfg(path):
+    from renderworld.training.stages.tokenizer import load_tokenizer
+
+    return load_tokenizer(path).cfg
+
+
+def test_loss_decreases_when_overfitting_one_window(wm_overrides, tmp_path):
+    cfg = compose_cfg([*wm_overrides, f"run_dir={tmp_path}", "trainer.max_steps=40",
+                       "trainer.batch_size=1", "trainer.overfit_samples=1",
+                       "trainer.log_every=1", "trainer.val_every=0", "optimizer.lr=1e-2",
+                       "scheduler=constant"])  # fmt: skip
+    train(cfg)
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    series = {
+        k: [float(r["value"]) for r in rows if r["key"] == f"train/{k}"]
+        for k in ("loss", "token_ce", "l2")
+    }
+    assert len(series["loss"]) == 40
+    assert np.mean(series["loss"][-5:]) < 0.7 * series["loss"][0], series["loss"]
+    assert np.mean(series["token_ce"][-5:]) < series["token_ce"][0]
+    assert np.mean(series["l2"][-5:]) < series["l2"][0]
+
+
+def test_tokens_are_cached_and_equal_a_fresh_encoding(wm_overrides, tmp_path):
+    stage, _, train_set, _ = _stage_and_model(wm_overrides, tmp_path)
+    batch = next(iter(DataLoader(train_set, batch_size=2)))
+    calls = []
+    encode = stage.tokenizer.encode
+    stage.tokenizer.encode = lambda x: (calls.append(len(x)), encode(x))[1]
+    codes = stage.window_tokens(batch, HISTORY + FUTURE, torch.device("cpu"))
+    # Two overlapping windows of 7 frames share 6: 8 distinct frames, encoded once each.
+    assert calls and sum(calls) == 8
+    again = stage.window_tokens(batch, HISTORY, torch.device("cpu"))
+    assert sum(calls) == 8, "cached frames are not re-encoded"
+    direct = encode(batch["occ"].flatten(0, 1)).indices.view(codes.shape)
+    assert codes.dtype == torch.int64 and torch.equal(codes, direct)
+    assert torch.equal(again, direct[:, :HISTORY])
+
+
+def test_baselines_match_renderworld_metrics_computed_directly(wm_overrides, tmp_path):
+    stage, model, _, val_set = _stage_and_model(wm_overrides, tmp_path)
+    with torch.no_grad():
+        metrics = stage.compute_metrics(stage.evaluate(model, DataLoader(val_set, batch_size=2)))
+    step1, fc_cam = OccupancyMetric(), ForecastMetric(FUTURE, (1.0, 2.0), mask_name="camera")
+    plan = PlanningMetric(FUTURE, (1.0, 2.0))
+    for i in range(len(val_set)):
+        item = val_set[i]
+        occ, cur = item["occ"], item["occ"][HISTORY - 1]
+        step1.update(cur, occ[HISTORY])  # Copy&Paste at step 1: the current frame repeated
+        fc_cam.update(copy_paste_forecast(cur, FUTURE), occ[HISTORY:],
+                      mask=item["mask_camera"][HISTORY:])  # fmt: skip
+        cv = constant_velocity_trajectory(item["ego_displacements"][: HISTORY - 1], FUTURE)
+        plan.update(cv, item["future_traj"])
+    assert metrics["copy_paste/miou_step1"] == pytest.approx(step1.compute()["miou"], abs=1e-12)
+    assert metrics["copy_paste/iou_step1"] == pytest.approx(
+        step1.compute()["iou_geometry"], abs=1e-12
+    )
+    direct = fc_cam.compute()
+    assert metrics["copy_paste/cam/miou_2s"] == pytest.approx(direct["miou@2s"], abs=1e-12)
+    assert metrics["copy_paste/cam/iou_avg"] == pytest.approx(direct["iou_avg"], abs=1e-12)
+    l2 = plan.compute()
+    assert metrics["cv_traj/l2_at_horizon_1s"] == pytest.approx(l2["l2_at_horizon@1s"], rel=1e-6)
+    assert metrics["cv_traj/l2_mean_to_horizon_avg"] == pytest.approx(
+        l2["l2_mean_to_horizon_avg"], rel=1e-6
+    )
+    # The copy-paste forecast is not the GT: these numbers are not trivially 1.
+    assert 0.0 < metrics["copy_paste/miou_step1"] < 1.0
+
+
+def test_statistics_are_additive_over_shards(wm_overrides, tmp_path):
+    stage, model, _, val_set = _stage_and_model(wm_overrides, tmp_path)
+    with torch.no_grad():
+        # One window per batch in both (float32 model outputs depend on batch composition).
+        whole = stage.evaluate(model, DataLoader(val_set, batch_size=1))
+        parts = [stage.evaluate(model, DataLoader(Subset(val_set, [i]))) for i in (0, 1)]
+        empty = stage.evaluate(model, DataLoader(Subset(val_set, [])))
+    assert set(whole) == set(parts[0]) == set(empty)
+    summed = {k: parts[0][k].cpu() + parts[1][k].cpu() + empty[k].cpu() for k in whole}
+    for k in whole:
+        assert torch.allclose(summed[k], whole[k].cpu().double(), rtol=1e-12), k
+    a, b = stage.compute_metrics(whole), stage.compute_metrics(summed)
+    assert a.keys() == b.keys()
+    for k in a:
+        assert a[k] == pytest.approx(b[k], rel=1e-12, nan_ok=True), k
+
+
+def test_eval_tool_prints_the_table_and_writes_csv_and_markdown(trained, wm_overrides, tmp_path):
+    run, _ = trained
+    ckpt = run / "checkpoints" / "last.pt"
+    proc = subprocess.run(
+        [PYTHON, str(REPO / "tools" / "eval.py"), *wm_overrides, f"ckpt={ckpt}",
+         f"run_dir={tmp_path}"],
+        cwd=tmp_path, env=subprocess_env(), capture_output=True, text=True, timeout=180,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    out = proc.stdout
+    assert "mIoU over classes 0..16, full volume (OccWorld protocol)" in out
+    assert "L2 at horizon (UniAD); mean-to-horizon in CSV" in out
+    header = next(line for line in out.splitlines() if line.startswith("method"))
+    for col in ("mIoU 1s", "mIoU 2s", "mIoU avg", "IoU avg", "L2 1s", "L2 avg", "Col 2s"):
+        assert col in header
+    labels = [line.split()[0] for line in out.splitlines()[out.splitlines().index(header) + 1 :]]
+    assert labels[:4] == ["model", "Copy&Paste", "CV-warp", "CV-trajectory"]
+    rows = {r["method"]: r for r in csv.DictReader((tmp_path / "world_model_eval.csv").open())}
+    assert list(rows) == ["model", "Copy&Paste", "CV-warp", "CV-trajectory"]
+    saved = json.loads((tmp_path / "eval_metrics.json").read_text())
+    assert float(rows["model"]["miou_1s_pct"]) == pytest.approx(100 * saved["val/model/miou_1s"])
+    assert float(rows["CV-trajectory"]["l2_mean_to_horizon_2s_m"]) == pytest.approx(
+        saved["val/cv_traj/l2_mean_to_horizon_2s"]
+    )
+    assert rows["CV-trajectory"]["miou_1s_pct"] == ""  # not applicable: left empty
+    assert rows["Copy&Paste"]["l2_at_horizon_avg_m"] == ""
+    md = (tmp_path / "world_model_eval.md").read_text()
+    assert "| model |" in md and "| CV-warp |" in md and "OccWorld protocol" in md
+
+
+def test_eval_takes_the_architecture_from_the_checkpoint(trained, wm_overrides, tmp_path):
+    run, metrics = trained
+    ckpt = f"ckpt={run / 'checkpoints' / 'last.pt'}"
+    default_arch = [o for o in wm_overrides if o not in TINY_MODEL]
+    cfg = compose_cfg([*default_arch, ckpt, f"run_dir={tmp_path / 'a'}"], "eval")
+    with pytest.warns(UserWarning, match=r"stage\.model: embed_dim=16 \(not 128\)"):
+        again = evaluate(cfg)
+    assert again["val/model/miou_1s"] == pytest.approx(metrics["val/model/miou_1s"], rel=1e-9)
+    cfg = compose_cfg([*wm_overrides, ckpt, f"run_dir={tmp_path / 'b'}", "stage.future=2"], "eval")
+    with pytest.raises(ValueError, match=r"stage\.future: the checkpoint .* trained with 4"):
+        evaluate(cfg)
+
+
+def test_tokenizer_checkpoint_errors_name_the_key(wm_overrides, tmp_path, tokenizer_ckpt):
+    base = [o for o in wm_overrides if not o.startswith("stage.tokenizer_ckpt=")]
+    with pytest.raises(ValueError, match=r"stage\.tokenizer_ckpt: required config value"):
+        train(compose_cfg([*base, f"run_dir={tmp_path / 'a'}"]))
+    with pytest.raises(ValueError, match=r"stage\.tokenizer_ckpt: required config value"):
+        evaluate(compose_cfg([*base, f"run_dir={tmp_path / 'b'}", "ckpt=x.pt"], "eval"))
+    with pytest.raises(CheckpointError, match=r"stage\.tokenizer_ckpt: .*no such file"):
+        train(compose_cfg([*base, f"run_dir={tmp_path / 'c'}", "stage.tokenizer_ckpt=nope.pt"]))
+    with pytest.raises(ValueError, match=r"stage\.tokenizer_ckpt: .*grid 'quarter'"):
+        train(compose_cfg([*wm_overrides, f"run_dir={tmp_path / 'd'}", "grid=quarter"]))
+    with pytest.raises(ValueError, match=r"stage\.model\.codebook_sizes: set by the tokenizer"):
+        train(compose_cfg([*wm_overrides, f"run_dir={tmp_path / 'e'}",
+                           "+stage.model.codebook_sizes=[4,4]"]))  # fmt: skip
+    with pytest.raises(ValueError, match=r"stage\.history: expected an int >= 2"):
+        train(compose_cfg([*wm_overrides, f"run_dir={tmp_path / 'f'}", "stage.history=1"]))
+    assert not any((tmp_path / d).exists() for d in "abcdef"), "nothing written on failure"
+
+
+def test_planner_bundle_round_trip(trained, tokenizer_ckpt, converted, tmp_path):
+    run, _ = trained
+    ckpt = run / "checkpoints" / "last.pt"
+    out = export_planner_bundle(ckpt, tokenizer_ckpt, tmp_path / "planner.pt")
+    planner = load_planner(out)
+    root, infos = converted
+    window = OccSequenceDataset(load_infos(infos, "val"), root, history=5, future=0)[0]
+    req = PlanRequest(window["occ"].numpy(), window["ego_displacements"].numpy(), "straight")
+    res = planner.plan(req)
+    assert res.trajectory.shape == (FUTURE, 2) and np.isfinite(res.trajectory).all()
+    assert res.occupancy_forecast.shape == (FUTURE, 50, 50, 4)
+    # Same numbers as the stage's own model and tokenizer on the last HISTORY frames.
+    tok = _load_tok(tokenizer_ckpt)
+    model = WorldModel(planner.config)
+    model.load_state_dict(load_checkpoint(ckpt)["model"], strict=True)
+    idx = tok.encode(window["occ"][-HISTORY:]).indices[None]
+    ro = model.eval().rollout(idx, window["ego_displacements"][None, -(HISTORY - 1) :],
+                              torch.tensor([2]), steps=FUTURE)  # fmt: skip
+    np.testing.assert_allclose(res.trajectory, ro.trajectory[0].numpy(), rtol=1e-5, atol=1e-5)
+    # A tokenizer file other than the one trained on is flagged.
+    other = tmp_path / "copy.pt"
+    shutil.copy(tokenizer_ckpt, other)
+    with pytest.warns(UserWarning, match="differs from the tokenizer"):
+        export_planner_bundle(ckpt, other, tmp_path / "planner2.pt")
+
+
+def _load_tok(path):
+    from renderworld.training.stages.tokenizer import load_tokenizer
+
+    return load_tokenizer(path)
+
+
+def test_mini_experiment_composes_with_its_deltas():
+    cfg = compose_cfg(["experiment=world_model_mini", "stage.tokenizer_ckpt=tok.pt"])
+    assert cfg.stage.name == "world_model" and cfg.dataset.name == "sim_mini"
+    assert cfg.grid.name == "coarse" and cfg.trainer.device == "cpu"
+    assert cfg.trainer.max_minutes == 8 and cfg.trainer.monitor == "val/model/miou_avg"
+    assert cfg.stage.model.embed_dim == 64 and cfg.stage.model.num_scales == 2
+    assert cfg.trainer.max_steps == 400
+    assert cfg.stage.history == 5 and cfg.stage.future == 6 and cfg.stage.lambda_l2 == 0.1
