@@ -104,12 +104,21 @@ def register_tokenizer(
     _REGISTRY[kind] = _Entry(cls, from_config, to_config or _default_to_config)
 
 
+def _register_builtin() -> None:
+    """Register the package's own tokenizer as ``"scene_tokenizer"`` (imported on first use)."""
+    if "scene_tokenizer" not in _REGISTRY:
+        from renderworld.tokenizer import SceneTokenizer, build_tokenizer
+
+        register_tokenizer("scene_tokenizer", SceneTokenizer, from_config=build_tokenizer)
+
+
 def registered_tokenizers() -> tuple[str, ...]:
     """Kinds known to :func:`load_planner`."""
     return tuple(sorted(_REGISTRY))
 
 
 def _kind_of(tokenizer) -> str:
+    _register_builtin()
     for kind, entry in _REGISTRY.items():
         if type(tokenizer) is entry.cls:
             return kind
@@ -196,6 +205,7 @@ def load_planner(ckpt_path: str | os.PathLike, device: str | torch.device = "cpu
     tok, wm = data["tokenizer"], data["world_model"]
     _require_keys(tok, {"kind", "config", "state_dict"}, f"{path}: tokenizer")
     _require_keys(wm, {"config", "state_dict"}, f"{path}: world_model")
+    _register_builtin()
     if tok["kind"] not in _REGISTRY:
         raise ValueError(
             f"{path}: tokenizer kind {tok['kind']!r} is not registered "
