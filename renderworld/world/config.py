@@ -40,6 +40,9 @@ class WorldModelConfig:
             component, applied with a scaled tanh so rollouts stay bounded; also the input
             normalisation of displacements.
         mlp_ratio: hidden width of the block MLPs relative to ``embed_dim``.
+        cv_residual: the ego head predicts a correction to the constant-velocity prior (the
+            previous step's displacement) instead of the displacement itself; the head starts
+            at zero, so an untrained model plans like constant velocity.
     """
 
     codebook_sizes: tuple[int, ...] = (512, 512)
@@ -52,6 +55,7 @@ class WorldModelConfig:
     future_frames: int = FUTURE_FRAMES
     max_displacement: float = 15.0
     mlp_ratio: float = 2.0
+    cv_residual: bool = True
 
     def __post_init__(self) -> None:
         # Accept lists (e.g. from a loaded dict) but store tuples so the config stays hashable.

@@ -126,6 +126,9 @@ class WorldModel(nn.Module):
         self.up = nn.ModuleList(UpFuse(d) for _ in range(config.num_scales - 1))
         self.ego_block = EgoTemporalBlock(d, heads, r)
         self.ego_head = nn.Linear(d, len(COMMANDS) * 2)
+        if config.cv_residual:  # start exactly at the constant-velocity prior
+            nn.init.zeros_(self.ego_head.weight)
+            nn.init.zeros_(self.ego_head.bias)
         self.out_norm = nn.LayerNorm(d)
         self.code_heads = nn.ModuleList(nn.Linear(d, k) for k in config.codebook_sizes)
 
@@ -235,6 +238,11 @@ class WorldModel(nn.Module):
         x = self.out_norm(x)
         logits = [head(x).permute(0, 1, 4, 2, 3) for head in self.code_heads]
         raw = self.ego_head(ego).view(b, t, len(COMMANDS), 2)
+        if cfg.cv_residual:
+            # Prior for d[i]: the displacement into frame i, d[i-1] (none for frame 0).
+            prior = torch.zeros(b, start + t, 2, dtype=raw.dtype, device=raw.device)
+            prior[:, 1:] = displacements[:, : start + t - 1].to(raw.dtype)
+            raw = raw + prior[:, start:, None, :]
         m = cfg.max_displacement
         modes = m * torch.tanh(raw / m)
         idx = command.view(b, 1, 1, 1).expand(b, t, 1, 2)

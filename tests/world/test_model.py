@@ -103,8 +103,20 @@ def test_causal_future_frame_does_not_change_earlier_predictions():
     assert not torch.allclose(base.displacement[:, j:], out.displacement[:, j:])
 
 
+def test_untrained_cv_residual_model_plans_constant_velocity():
+    m = tiny_model()
+    tokens, disp, cmd = random_inputs()
+    out = m(tokens, disp, cmd)
+    # Prediction i is d[i]; its prior is d[i-1] (zero for frame 0), bounded by tanh.
+    prior = torch.cat([torch.zeros_like(disp[:, :1]), disp], dim=1)
+    bound = m.config.max_displacement
+    expected = bound * torch.tanh(prior / bound)
+    torch.testing.assert_close(out.displacement, expected, rtol=0, atol=1e-6)
+
+
 def test_command_selects_ego_mode():
     m = tiny_model()
+    torch.nn.init.normal_(m.ego_head.weight)  # a trained head: the modes differ
     tokens, disp, _ = random_inputs()
     outs = []
     for c in range(len(COMMANDS)):

@@ -71,6 +71,7 @@ def test_forward_in_pieces_with_cache_equals_whole():
 
 def test_rollout_command_changes_selected_head_only():
     m = tiny_model()
+    torch.nn.init.normal_(m.ego_head.weight)  # a trained head: the command modes differ
     tokens, disp, _ = random_inputs()
     left = m.rollout(tokens, disp, torch.full((2,), COMMANDS.index("left")))
     right = m.rollout(tokens, disp, torch.full((2,), COMMANDS.index("right")))
