@@ -181,6 +181,45 @@ def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
                 out / "world_model_eval",
                 depends_on=("world_model",),
             ),
+            Step(
+                "world_model_camera",
+                "train the world model on Img2Occ pseudo labels (Camera setting)",
+                (
+                    py,
+                    "tools/train.py",
+                    "experiment=world_model_mini",
+                    *common,
+                    f"stage.tokenizer_ckpt={tok}",
+                    f"stage.occ_root={pseudo}",
+                    f"run_dir={out / 'world_model_camera'}",
+                    *extra,
+                ),  # fmt: skip
+                out / "world_model_camera",
+                depends_on=("tokenizer", "pseudo_labels"),
+                inputs=(
+                    pkg / "world",
+                    conf / "stage" / "world_model.yaml",
+                    conf / "experiment" / "world_model_mini.yaml",
+                ),  # fmt: skip
+                resume_args=("resume=true",),
+                resume_marker=out / "world_model_camera" / "checkpoints" / "last.pt",
+            ),
+            Step(
+                "world_model_camera_eval",
+                "forecast from pseudo labels, scored against GT (Camera setting)",
+                (
+                    py,
+                    "tools/eval.py",
+                    "experiment=world_model_mini",
+                    *common,
+                    f"stage.tokenizer_ckpt={tok}",
+                    f"stage.occ_root={pseudo}",
+                    f"ckpt={out / 'world_model_camera' / 'checkpoints' / 'best.pt'}",
+                    f"run_dir={out / 'world_model_camera_eval'}",
+                ),  # fmt: skip
+                out / "world_model_camera_eval",
+                depends_on=("world_model_camera",),
+            ),
         ]
     return steps
 
@@ -271,8 +310,18 @@ def _report(cfg: Any, out: Path, results, seconds: float) -> Path:
     if wm_tables:
         body = "\n\n".join(p.read_text() for p in wm_tables)
         sections.append(("Forecasting and planning (mini_val, 3D-Occ setting)", body))
+    cam_tables = sorted((out / "world_model_camera_eval").glob("*.md"))
+    if cam_tables:
+        body = "\n\n".join(p.read_text() for p in cam_tables)
+        sections.append(
+            (
+                "Forecasting and planning (mini_val, Camera setting: Img2Occ pseudo-label inputs, "
+                "GT targets)",
+                body,
+            )  # fmt: skip
+        )
     figures = []
-    for run in ("img2occ", "tokenizer", "world_model"):
+    for run in ("img2occ", "tokenizer", "world_model", "world_model_camera"):
         png = plot_training_curves(
             out / run / "metrics.csv", out / "figures" / f"curves_{run}.png",
             keys=("train/loss", "val/"),

@@ -316,3 +316,29 @@ def test_mini_experiment_composes_with_its_deltas():
     assert cfg.stage.model.embed_dim == 64 and cfg.stage.model.num_scales == 2
     assert cfg.trainer.max_steps == 400
     assert cfg.stage.history == 5 and cfg.stage.future == 6 and cfg.stage.lambda_l2 == 0.1
+
+
+def test_camera_setting_scores_pseudo_label_inputs_against_gt(converted, tmp_path):
+    from renderworld.constants import FREE_ID
+    from renderworld.data import load_occ3d_labels, save_occ3d_labels
+    from renderworld.training.stages.world_model_eval import WorldModelWindows
+
+    root, infos_dir = converted
+    infos = load_infos(infos_dir, "val")
+    pseudo = tmp_path / "pseudo"
+    for scene, token, occ_path in zip(
+        infos["scene_name"], infos["sample_token"], infos["occ_path"], strict=True
+    ):
+        gt = load_occ3d_labels(root / occ_path)
+        free = np.full_like(gt.semantics, FREE_ID)  # a pseudo labeller that sees nothing
+        save_occ3d_labels(
+            pseudo / scene / token / "labels.npz", free, gt.mask_lidar, gt.mask_camera
+        )
+    cam = WorldModelWindows(infos, root, "coarse", 3, 2, occ_root=pseudo, gt_targets=True)
+    gt_only = OccSequenceDataset(infos, root, history=3, future=2, grid="coarse")
+    item = cam[0]
+    assert (item["occ"] == FREE_ID).all()  # inputs: pseudo labels
+    assert torch.equal(item["occ_target"], gt_only[0]["occ"])  # targets: GT
+    assert (item["occ_target"] != FREE_ID).any()
+    # Without gt_targets (training windows) nothing extra is loaded.
+    assert "occ_target" not in WorldModelWindows(infos, root, "coarse", 3, 2, occ_root=pseudo)[0]

@@ -242,11 +242,14 @@ class WorldModelStage(Stage):
         occ_root, root = cfg.stage.get("occ_root"), str(cfg.dataset.data_root)
         st = self.settings
 
-        def windows(split: str) -> wme.WorldModelWindows:
+        def windows(split: str, gt_targets: bool) -> wme.WorldModelWindows:
             infos = load_infos(folder, split)
-            return wme.WorldModelWindows(infos, root, self.grid, st.history, st.future, occ_root)
+            return wme.WorldModelWindows(
+                infos, root, self.grid, st.history, st.future, occ_root, gt_targets
+            )
 
-        return windows(cfg.dataset.train_split), windows(cfg.dataset.val_split)
+        # Camera setting: train on pseudo labels; validate pseudo-label inputs against GT.
+        return windows(cfg.dataset.train_split, False), windows(cfg.dataset.val_split, True)
 
     def _teacher_forced(self, model: nn.Module, batch: dict, tokens: torch.Tensor):
         st = self.settings
@@ -298,12 +301,14 @@ class WorldModelStage(Stage):
                 "warp_cv": warp_constant_velocity_forecast(current, disp[:, h - 2], f, self.grid),
             }
             valid = batch["future_mask"].bool()
-            wme.add_forecast_stats(stats, forecasts, occ[:, h:], batch["mask_camera"][:, h:], valid)
+            target = batch.get("occ_target", occ)[:, h:]
+            target_mask = batch.get("mask_camera_target", batch["mask_camera"])[:, h:]
+            wme.add_forecast_stats(stats, forecasts, target, target_mask, valid)
             trajs = {
                 "model": ro.trajectory,
                 "cv_traj": constant_velocity_trajectory(disp[:, : h - 1], f),
             }
-            wme.update_planning(plan, trajs, batch, occ[:, h:], valid)
+            wme.update_planning(plan, trajs, batch, target, valid)
         for k, vals in sums.items():
             stats.update(sum_count(k, torch.cat(vals) if vals else torch.zeros(0)))
         for p in plan:
@@ -337,7 +342,7 @@ class WorldModelStage(Stage):
         source = (
             "GT occupancy (3D-Occ setting)"
             if not occ_root
-            else f"pseudo labels {occ_root} (Camera setting)"
+            else f"inputs: pseudo labels {occ_root}, targets: GT occupancy (Camera setting)"
         )
         n = metrics.get("val/num_windows", metrics.get("num_windows", float("nan")))
         header = [

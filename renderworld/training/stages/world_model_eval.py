@@ -69,15 +69,26 @@ _COLL_KEYS = ("hit", "evaluated", "gt_skipped", "outside")
 class WorldModelWindows(Dataset):
     """``OccSequenceDataset`` windows plus ``future_poses`` float32 [F, 3].
 
+    With ``occ_root`` (pseudo labels) and ``gt_targets``, items also carry the dataset's GT
+    ``occ_target`` uint8 [T,X,Y,Z] and ``mask_camera_target`` bool [T,X,Y,Z] of the same window,
+    which evaluation scores against (the "Camera" setting).
+
     ``future_poses[k]`` = (x, y, yaw) of future frame k's ego frame in the current (last
     history) ego frame, metres / radians: where each future GT occupancy frame lies, for the
     collision-vs-occupancy metric.
     """
 
-    def __init__(self, infos, data_root, grid, history, future, occ_root=None):
+    def __init__(self, infos, data_root, grid, history, future, occ_root=None, gt_targets=False):
         self.seq = OccSequenceDataset(
             infos, data_root, history=history, future=future, grid=grid, occ_root=occ_root
         )
+        # Camera setting: inputs are pseudo labels (occ_root) but forecasts are scored against
+        # the dataset's GT; the GT windows are the same windows (same infos, history, future).
+        self.gt = None
+        if occ_root is not None and gt_targets:
+            self.gt = OccSequenceDataset(
+                infos, data_root, history=history, future=future, grid=grid, occ_root=None
+            )
 
     def __len__(self) -> int:
         return len(self.seq)
@@ -89,6 +100,9 @@ class WorldModelWindows(Dataset):
         poses = seq.ego2global[start : start + seq.history + seq.future]
         rel = frame_poses_from_poses(poses, seq.history - 1)[seq.history :]
         item["future_poses"] = torch.from_numpy(rel.astype("float32"))
+        if self.gt is not None:
+            gt = self.gt[i]
+            item["occ_target"], item["mask_camera_target"] = gt["occ"], gt["mask_camera"]
         return item
 
 
