@@ -340,7 +340,7 @@ class WorldModelStage(Stage):
             return None
         occ_root = self.cfg.stage.get("occ_root")
         source = (
-            "GT occupancy (3D-Occ setting)"
+            "inputs and targets: GT occupancy (3D-Occ setting)"
             if not occ_root
             else f"inputs: pseudo labels {occ_root}, targets: GT occupancy (Camera setting)"
         )
@@ -348,7 +348,7 @@ class WorldModelStage(Stage):
         header = [
             f"World model evaluation: split {self.cfg.dataset.val_split!r} of "
             f"{self.cfg.dataset.name}, {int(n)} windows, history {self.settings.history}, "
-            f"future {self.settings.future}; input/targets: {source}; grid {self.grid.name}",
+            f"future {self.settings.future}; {source}; grid {self.grid.name}",
             "Forecast: mIoU over classes 0..16, full volume (OccWorld protocol); IoU = occupied "
             "vs free; percent. Camera-mask values in CSV",
             "Planning: L2 at horizon (UniAD); mean-to-horizon in CSV. L2 in metres; Col = "
