@@ -26,6 +26,59 @@ __all__ = ["main_job_steps", "run_main_job"]
 VERSION = "v1.0-mini"
 
 
+def _train_and_eval(
+    name: str,
+    what: tuple[str, str],
+    experiment: str,
+    args: tuple[str, ...],
+    out: Path,
+    depends_on: tuple[str, ...],
+    inputs: tuple[Path, ...],
+    extra: tuple[str, ...],
+    ckpt: str = "best.pt",
+) -> list[Step]:
+    """A training step (resumable from its ``last.pt``) and the step evaluating its checkpoint.
+
+    Args:
+        name: training step name; the eval step is ``<name>_eval``.
+        what: (training description, evaluation description).
+        experiment: the Hydra experiment both commands use.
+        args: overrides both commands share (data root, upstream checkpoints ...).
+        out: the pipeline's output folder; runs go to ``<out>/<name>`` and ``<out>/<name>_eval``.
+        depends_on: steps the training reads.
+        inputs: code and configs fingerprinted for the training step.
+        extra: overrides for the training command only.
+        ckpt: the checkpoint file evaluated.
+    """
+    py, run = sys.executable, out / name
+    base = (f"experiment={experiment}", *args)
+    return [
+        Step(
+            name,
+            what[0],
+            (py, "tools/train.py", *base, f"run_dir={run}", *extra),
+            run,
+            depends_on=depends_on,
+            inputs=inputs,
+            resume_args=("resume=true",),
+            resume_marker=run / "checkpoints" / "last.pt",
+        ),
+        Step(
+            f"{name}_eval",
+            what[1],
+            (
+                py,
+                "tools/eval.py",
+                *base,
+                f"ckpt={run / 'checkpoints' / ckpt}",
+                f"run_dir={out / (name + '_eval')}",
+            ),  # fmt: skip
+            out / f"{name}_eval",
+            depends_on=(name,),
+        ),
+    ]
+
+
 def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
     """The pipeline's steps for a ``configs/pipeline.yaml`` config."""
     py = sys.executable
@@ -35,6 +88,10 @@ def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
     extra = tuple(str(x) for x in cfg.train_overrides)
     pkg, conf = repo / "renderworld", repo / "configs"
     common = (f"dataset.data_root={data}",)
+
+    def configs(stage: str, experiment: str) -> tuple[Path, ...]:
+        return (conf / "stage" / f"{stage}.yaml", conf / "experiment" / f"{experiment}.yaml")
+
     steps = [
         Step(
             "fixtures",
@@ -58,169 +115,48 @@ def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
             depends_on=("fixtures",),
             inputs=(repo / "data_converters", conf / "create_data.yaml"),
         ),
-        Step(
-            "tokenizer",
-            "train the AM-VAE tokenizer on GT occupancy",
-            (
-                py,
-                "tools/train.py",
-                "experiment=tokenizer_mini",
-                *common,
-                f"run_dir={out / 'tokenizer'}",
-                *extra,
-            ),  # fmt: skip
-            out / "tokenizer",
-            depends_on=("infos",),
-            inputs=(
-                pkg / "tokenizer",
-                conf / "stage" / "tokenizer.yaml",
-                conf / "experiment" / "tokenizer_mini.yaml",
-            ),  # fmt: skip
-            resume_args=("resume=true",),
-            resume_marker=out / "tokenizer" / "checkpoints" / "last.pt",
-        ),
-        Step(
-            "tokenizer_eval",
-            "evaluate tokenizer reconstruction on mini_val",
-            (
-                py,
-                "tools/eval.py",
-                "experiment=tokenizer_mini",
-                *common,
-                f"ckpt={out / 'tokenizer' / 'checkpoints' / 'best.pt'}",
-                f"run_dir={out / 'tokenizer_eval'}",
-            ),  # fmt: skip
-            out / "tokenizer_eval",
-            depends_on=("tokenizer",),
-        ),
     ]
+    steps += _train_and_eval(
+        "tokenizer",
+        ("train the AM-VAE tokenizer on GT occupancy",
+         "evaluate tokenizer reconstruction on mini_val"),  # fmt: skip
+        "tokenizer_mini", common, out, ("infos",),
+        (pkg / "tokenizer", *configs("tokenizer", "tokenizer_mini")), extra,
+    )  # fmt: skip
     i2o = out / "img2occ" / "checkpoints" / "best.pt"
     pseudo = out / "pseudo_labels"
-    steps += [
-        Step(
-            "img2occ",
-            "train Img2Occ (semantic Gaussians) from LiDAR-projected 2-D labels",
-            (
-                py,
-                "tools/train.py",
-                "experiment=img2occ_mini",
-                *common,
-                f"run_dir={out / 'img2occ'}",
-                *extra,
-            ),  # fmt: skip
-            out / "img2occ",
-            depends_on=("infos",),
-            inputs=(
-                pkg / "img2occ",
-                pkg / "splat",
-                conf / "stage" / "img2occ.yaml",
-                conf / "experiment" / "img2occ_mini.yaml",
-            ),  # fmt: skip
-            resume_args=("resume=true",),
-            resume_marker=out / "img2occ" / "checkpoints" / "last.pt",
-        ),
-        Step(
-            "img2occ_eval",
-            "evaluate 3-D occupancy on mini_val (Occ3D protocol, camera mask)",
-            (
-                py,
-                "tools/eval.py",
-                "experiment=img2occ_mini",
-                *common,
-                f"ckpt={i2o}",
-                f"run_dir={out / 'img2occ_eval'}",
-            ),  # fmt: skip
-            out / "img2occ_eval",
-            depends_on=("img2occ",),
-        ),
+    steps += _train_and_eval(
+        "img2occ",
+        ("train Img2Occ (semantic Gaussians) from LiDAR-projected 2-D labels",
+         "evaluate 3-D occupancy on mini_val (Occ3D protocol, camera mask)"),  # fmt: skip
+        "img2occ_mini", common, out, ("infos",),
+        (pkg / "img2occ", pkg / "splat", *configs("img2occ", "img2occ_mini")), extra,
+    )  # fmt: skip
+    steps.append(
         Step(
             "pseudo_labels",
             "export Img2Occ occupancy as Occ3D-layout pseudo labels",
             (py, "tools/export_occ.py", f"ckpt={i2o}", f"data_root={data}", f"out={pseudo}"),
             pseudo,
             depends_on=("img2occ",),
-        ),
-    ]
+        )
+    )
     if (conf / "stage" / "world_model.yaml").is_file():
-        tok = out / "tokenizer" / "checkpoints" / "best.pt"
-        steps += [
-            Step(
-                "world_model",
-                "train the world model on GT occupancy tokens (3D-Occ setting)",
-                (
-                    py,
-                    "tools/train.py",
-                    "experiment=world_model_mini",
-                    *common,
-                    f"stage.tokenizer_ckpt={tok}",
-                    f"run_dir={out / 'world_model'}",
-                    *extra,
-                ),  # fmt: skip
-                out / "world_model",
-                depends_on=("tokenizer",),
-                inputs=(
-                    pkg / "world",
-                    conf / "stage" / "world_model.yaml",
-                    conf / "experiment" / "world_model_mini.yaml",
-                ),  # fmt: skip
-                resume_args=("resume=true",),
-                resume_marker=out / "world_model" / "checkpoints" / "last.pt",
-            ),
-            Step(
-                "world_model_eval",
-                "forecast and plan on mini_val beside the baselines",
-                (
-                    py,
-                    "tools/eval.py",
-                    "experiment=world_model_mini",
-                    *common,
-                    f"stage.tokenizer_ckpt={tok}",
-                    f"ckpt={out / 'world_model' / 'checkpoints' / 'best.pt'}",
-                    f"run_dir={out / 'world_model_eval'}",
-                ),  # fmt: skip
-                out / "world_model_eval",
-                depends_on=("world_model",),
-            ),
-            Step(
-                "world_model_camera",
-                "train the world model on Img2Occ pseudo labels (Camera setting)",
-                (
-                    py,
-                    "tools/train.py",
-                    "experiment=world_model_mini",
-                    *common,
-                    f"stage.tokenizer_ckpt={tok}",
-                    f"stage.occ_root={pseudo}",
-                    f"run_dir={out / 'world_model_camera'}",
-                    *extra,
-                ),  # fmt: skip
-                out / "world_model_camera",
-                depends_on=("tokenizer", "pseudo_labels"),
-                inputs=(
-                    pkg / "world",
-                    conf / "stage" / "world_model.yaml",
-                    conf / "experiment" / "world_model_mini.yaml",
-                ),  # fmt: skip
-                resume_args=("resume=true",),
-                resume_marker=out / "world_model_camera" / "checkpoints" / "last.pt",
-            ),
-            Step(
-                "world_model_camera_eval",
-                "forecast from pseudo labels, scored against GT (Camera setting)",
-                (
-                    py,
-                    "tools/eval.py",
-                    "experiment=world_model_mini",
-                    *common,
-                    f"stage.tokenizer_ckpt={tok}",
-                    f"stage.occ_root={pseudo}",
-                    f"ckpt={out / 'world_model_camera' / 'checkpoints' / 'best.pt'}",
-                    f"run_dir={out / 'world_model_camera_eval'}",
-                ),  # fmt: skip
-                out / "world_model_camera_eval",
-                depends_on=("world_model_camera",),
-            ),
-        ]
+        tok = (f"stage.tokenizer_ckpt={out / 'tokenizer' / 'checkpoints' / 'best.pt'}",)
+        wm_inputs = (pkg / "world", *configs("world_model", "world_model_mini"))
+        steps += _train_and_eval(
+            "world_model",
+            ("train the world model on GT occupancy tokens (3D-Occ setting)",
+             "forecast and plan on mini_val beside the baselines"),  # fmt: skip
+            "world_model_mini", (*common, *tok), out, ("tokenizer",), wm_inputs, extra,
+        )  # fmt: skip
+        steps += _train_and_eval(
+            "world_model_camera",
+            ("train the world model on Img2Occ pseudo labels (Camera setting)",
+             "forecast from pseudo labels, scored against GT (Camera setting)"),  # fmt: skip
+            "world_model_mini", (*common, *tok, f"stage.occ_root={pseudo}"), out,
+            ("tokenizer", "pseudo_labels"), wm_inputs, extra,
+        )  # fmt: skip
     return steps
 
 

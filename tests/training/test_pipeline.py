@@ -71,3 +71,26 @@ def test_changed_inputs_start_over_instead_of_resuming(tmp_path):
     (out / ".step-done.json").unlink()  # interrupted (no stamp) with a checkpoint: resume
     run_steps([step()], tmp_path / "logs", tmp_path, echo=quiet)
     assert (out / "args").read_text() == "resume=true"
+
+
+def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from renderworld.training.pipeline_main import main_job_steps
+
+    repo = Path(__file__).resolve().parents[2]
+    cfg = OmegaConf.load(repo / "configs" / "pipeline.yaml")
+    cfg.out, cfg.data_root = str(tmp_path / "out"), str(tmp_path / "data")
+    steps = main_job_steps(cfg, repo)
+    names = [s.name for s in steps]
+    assert len(set(names)) == len(names)
+    assert len({s.out_dir for s in steps}) == len(steps)
+    for i, s in enumerate(steps):
+        assert set(s.depends_on) <= set(names[:i]), s.name  # upstream steps run first
+        if s.command[1] == "tools/train.py":  # every training step resumes from its last.pt
+            assert s.resume_marker == s.out_dir / "checkpoints" / "last.pt"
+            assert f"{s.name}_eval" in names
+    for required in ("fixtures", "infos", "tokenizer", "img2occ", "pseudo_labels"):
+        assert required in names
