@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from renderworld.constants import FREE_ID, NUM_OCC3D_CLASSES
+from renderworld.metrics.occupancy import confusion_matrix as occupancy_confusion
 from renderworld.metrics.occupancy import geometry_iou, iou_per_class, mean_iou
 
 __all__ = [
@@ -41,20 +42,7 @@ def confusion_matrix(pred, gt, mask=None) -> np.ndarray:
     Returns:
         [18, 18] int64.
     """
-    pred = torch.as_tensor(pred).long().reshape(-1)
-    gt = torch.as_tensor(gt).long().reshape(-1).to(pred.device)
-    if pred.shape != gt.shape:
-        raise ValueError(f"pred/gt: expected equal sizes, got {pred.numel()} and {gt.numel()}")
-    if mask is not None:
-        m = torch.as_tensor(mask).bool().reshape(-1).to(pred.device)
-        if m.shape != gt.shape:
-            raise ValueError(f"mask: expected {gt.numel()} voxels, got {m.numel()}")
-        pred, gt = pred[m], gt[m]
-    n = NUM_OCC3D_CLASSES
-    if gt.numel() and (int(gt.max()) >= n or int(gt.min()) < 0):
-        raise ValueError(f"gt: expected ids 0..{n - 1}, got {int(gt.min())}..{int(gt.max())}")
-    flat = torch.bincount(gt * n + pred, minlength=n * n)
-    return flat.view(n, n).cpu().numpy().astype(np.int64)
+    return occupancy_confusion(pred, gt, mask).astype(np.int64)
 
 
 def miou_from_confusion(conf: np.ndarray) -> tuple[float, np.ndarray]:
