@@ -107,10 +107,18 @@ def init_distributed(device_preference: str = "auto") -> DistInfo:
 
 
 def shutdown_distributed(info: DistInfo) -> None:
-    """Destroy the process group if ``init_distributed`` created it."""
+    """Destroy the process group if ``init_distributed`` created it.
+
+    All ranks meet at a barrier first: a rank that tears gloo down while a peer is still
+    receiving aborts the peer ("terminate called without an active exception", seen in CI).
+    """
     if info.owns_group and dist.is_initialized():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
+            try:
+                dist.barrier()
+            except RuntimeError:  # a peer already died; tearing down is all that is left
+                pass
             dist.destroy_process_group()
 
 
