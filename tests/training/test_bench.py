@@ -1,0 +1,371 @@
+"""The accuracy-vs-time sweep: point expansion, fingerprints, resume, tables and Pareto plots.
+
+The end-to-end test runs two real tokenizer points (3 steps each, tiny model) on the converted
+tiny fixture through the same subprocess path as ``tools/bench.py``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from data_converters import ConvertOptions, create_data
+from renderworld.training.bench import (
+    KNOBS,
+    BenchPoint,
+    expand_points,
+    format_value,
+    point_fingerprint,
+    run_sweep,
+)
+from renderworld.training.bench_main import bench_points
+from renderworld.training.bench_report import (
+    pareto_front,
+    result_rows,
+    stage_table,
+    write_outputs,
+)
+from renderworld.training.checkpoint import load_checkpoint
+
+from .conftest import compose_cfg
+
+
+def _preset(**stages):
+    return {"stages": stages}
+
+
+TOK = {
+    "experiment": "tokenizer_mini",
+    "budget": {"max_steps": 10, "max_minutes": 1},
+    "knobs": {"codebook_size": [64, 1024], "latent_size": [[50, 50]]},
+}
+WM = {"experiment": "world_model_mini", "budget": {"max_steps": 5}, "knobs": {"history": [3]}}
+
+
+# ---------------------------------------------------------------------- Pareto front
+def test_pareto_front_on_hand_made_points():
+    # cost, value: (1, 10) (2, 20) (3, 15) dominated by (2, 20); (4, 30); (2, 5) dominated.
+    costs = [1.0, 2.0, 3.0, 4.0, 2.0]
+    values = [10.0, 20.0, 15.0, 30.0, 5.0]
+    assert pareto_front(costs, values) == [0, 1, 3]
+
+
+def test_pareto_front_keeps_ties_and_skips_nan():
+    assert pareto_front([1.0, 1.0, 2.0], [5.0, 5.0, 5.0]) == [0, 1]
+    assert pareto_front([1.0, float("nan"), 3.0], [1.0, 99.0, 2.0]) == [0, 2]
+    assert pareto_front([], []) == []
+    with pytest.raises(ValueError, match="costs, values: expected the same length, got 2 and 1"):
+        pareto_front([1.0, 2.0], [1.0])
+
+
+# ---------------------------------------------------------------------- expansion
+def test_points_expand_default_first_then_each_knob_value_with_the_same_budget():
+    pts = expand_points(_preset(tokenizer=TOK), common=["dataset.data_root=/d"])
+    assert [p.point_id for p in pts] == [
+        "tokenizer__default",
+        "tokenizer__codebook_size-64",
+        "tokenizer__codebook_size-1024",
+        "tokenizer__latent_size-50x50",
+    ]
+    budget = {"trainer.max_steps=10", "trainer.max_minutes=1.0", "trainer.val_every=0"}
+    for p in pts:
+        assert budget <= set(p.overrides)
+        assert p.overrides[0] == "dataset.data_root=/d"
+        assert not budget & set(p.eval_overrides)  # the budget is for training only
+    assert pts[0].overrides == pts[1].overrides[:-1]
+    assert pts[1].overrides[-1] == "stage.model.codebook_size=64"
+    assert pts[3].overrides[-1] == "stage.model.latent_shape=[50,50]"
+    assert pts[3].eval_overrides[-1] == "stage.model.latent_shape=[50,50]"
+
+
+def test_upstream_checkpoints_go_to_train_and_eval(tmp_path):
+    ckpt = tmp_path / "tok.pt"
+    ckpt.write_bytes(b"x")
+    pts = expand_points(
+        _preset(world_model=WM), upstream={"world_model": [f"stage.tokenizer_ckpt={ckpt}"]}
+    )
+    for p in pts:
+        assert f"stage.tokenizer_ckpt={ckpt}" in p.overrides
+        assert f"stage.tokenizer_ckpt={ckpt}" in p.eval_overrides
+        assert p.upstream == (str(ckpt),)
+    assert pts[1].overrides[-1] == "stage.history=3"
+    assert "trainer.max_minutes='null'" not in pts[0].overrides
+    assert "trainer.max_minutes=null" in pts[0].overrides
+
+
+@pytest.mark.parametrize(
+    "preset, err, match",
+    [
+        ({}, ValueError, "bench.stages: expected a non-empty mapping"),
+        (_preset(planner={}), ValueError, r"bench.stages.planner: unknown stage 'planner'"),
+        (
+            _preset(tokenizer={**TOK, "knobs": {"history": [3]}}),
+            ValueError,
+            r"bench.stages.tokenizer.knobs.history: unknown knob for stage 'tokenizer'",
+        ),
+        (
+            _preset(tokenizer={**TOK, "steps": 3}),
+            ValueError,
+            r"bench.stages.tokenizer.steps: unknown key",
+        ),
+        (
+            _preset(tokenizer={**TOK, "budget": {"max_minutes": 2}}),
+            ValueError,
+            r"bench.stages.tokenizer.budget.max_steps: expected an int >= 1, got None",
+        ),
+        (
+            _preset(tokenizer={**TOK, "budget": {"max_steps": 3, "max_minutes": -1}}),
+            ValueError,
+            r"bench.stages.tokenizer.budget.max_minutes: expected a number > 0",
+        ),
+        (
+            _preset(tokenizer={**TOK, "experiment": None}),
+            ValueError,
+            r"bench.stages.tokenizer.experiment: expected an experiment name",
+        ),
+        (
+            _preset(tokenizer={**TOK, "knobs": {"codebook_size": ["big"]}}),
+            TypeError,
+            r"bench.stages.tokenizer.knobs.codebook_size: expected an int for knob "
+            r"'codebook_size', got 'big'",
+        ),
+        (
+            _preset(tokenizer={**TOK, "knobs": {"latent_size": [[50]]}}),
+            TypeError,
+            r"knobs.latent_size: expected a pair of positive ints",
+        ),
+        (
+            _preset(tokenizer={**TOK, "knobs": {"codebook_size": []}}),
+            ValueError,
+            r"bench.stages.tokenizer.knobs.codebook_size: expected a non-empty list",
+        ),
+        (
+            _preset(tokenizer={**TOK, "knobs": {"codebook_size": [64, 64]}}),
+            ValueError,
+            r"the point 'tokenizer__codebook_size-64' is listed twice",
+        ),
+    ],
+)
+def test_bad_presets_raise_naming_the_key(preset, err, match):
+    with pytest.raises(err, match=match):
+        expand_points(preset)
+
+
+def test_every_knob_maps_to_a_key_of_the_stage_config():
+    stage_keys = {
+        "img2occ": "stage=img2occ",
+        "tokenizer": "stage=tokenizer",
+        "world_model": "stage=world_model",
+    }
+    for stage, knobs in KNOBS.items():
+        cfg = compose_cfg([stage_keys[stage]])
+        for name, knob in knobs.items():
+            if knob.key != "grid":
+                assert OmegaConf.select(cfg, knob.key, default="MISSING") != "MISSING", name
+
+
+# ---------------------------------------------------------------------- shipped presets
+@pytest.fixture()
+def fake_root(tmp_path):
+    (tmp_path / "data" / "renderworld_infos").mkdir(parents=True)
+    tok = tmp_path / "tok.pt"
+    tok.write_bytes(b"x")
+    return tmp_path / "data", tok
+
+
+@pytest.mark.parametrize("preset, count", [("quick", 12), ("full", 24)])
+def test_shipped_presets_expand(fake_root, preset, count):
+    data, tok = fake_root
+    cfg = compose_cfg(
+        [f"bench={preset}", f"data_root={data}", f"tokenizer_ckpt={tok}"], config_name="bench"
+    )
+    pts = bench_points(cfg)
+    assert len(pts) == count
+    assert {p.stage for p in pts} == {"img2occ", "tokenizer", "world_model"}
+    assert str(cfg.out).endswith(f"outputs/bench/{preset}")
+
+
+def test_bench_config_errors_name_the_key(fake_root, tmp_path):
+    data, tok = fake_root
+    base = [f"data_root={data}", f"tokenizer_ckpt={tok}"]
+    cfg = compose_cfg([*base, "+bogus=1"], config_name="bench")
+    with pytest.raises(ValueError, match="bogus: unknown bench key"):
+        bench_points(cfg)
+    cfg = compose_cfg([*base, f"data_root={tmp_path / 'nowhere'}"], config_name="bench")
+    with pytest.raises(ValueError, match="data_root: .* has no renderworld_infos/"):
+        bench_points(cfg)
+    cfg = compose_cfg([*base, f"tokenizer_ckpt={tmp_path / 'no.pt'}"], config_name="bench")
+    with pytest.raises(ValueError, match="tokenizer_ckpt: .* does not exist"):
+        bench_points(cfg)
+    cfg = compose_cfg([*base, "+bench.extra=1"], config_name="bench")
+    with pytest.raises(ValueError, match=r"bench.extra: unknown preset key"):
+        bench_points(cfg)
+
+
+def test_an_unknown_preset_is_refused_by_name():
+    from hydra.errors import MissingConfigException
+
+    with pytest.raises(MissingConfigException, match="bench/nope"):
+        compose_cfg(["bench=nope"], config_name="bench")
+
+
+# ---------------------------------------------------------------------- fingerprint, resume
+def test_fingerprint_follows_overrides_budget_and_upstream_files(tmp_path):
+    ckpt = tmp_path / "tok.pt"
+    ckpt.write_bytes(b"x")
+    p = BenchPoint("world_model", "default", None, "world_model_mini",
+                   ("a=1", "trainer.max_steps=5"), ("a=1",), (str(ckpt),))  # fmt: skip
+    fp = point_fingerprint(p, 5)
+    assert fp == point_fingerprint(p, 5)
+    assert fp != point_fingerprint(p, 6)
+    q = BenchPoint(p.stage, p.knob, None, p.experiment, ("a=1", "trainer.max_steps=6"),
+                   p.eval_overrides, p.upstream)  # fmt: skip
+    assert fp != point_fingerprint(q, 5)
+    st = ckpt.stat()
+    os.utime(ckpt, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    assert fp != point_fingerprint(p, 5)
+
+
+def _fake_runner(calls):
+    def runner(point, point_dir, infer_frames, repo, timeout_s):
+        calls.append(point.point_id)
+        point_dir.mkdir(parents=True, exist_ok=True)
+        return {
+            "stage": point.stage, "knob": point.knob, "value": point.value,
+            "knob_value": "", "steps": 10, "train_s": 1.0 + len(calls), "infer_ms": 2.0,
+            "peak_rss_mib": 100.0, "metrics": {"val/miou": 0.5, "val/iou": 0.9},
+        }  # fmt: skip
+
+    return runner
+
+
+def test_sweep_reuses_measured_points_and_reruns_changed_ones(tmp_path):
+    calls: list[str] = []
+    pts = expand_points(_preset(tokenizer=TOK))
+    quiet = {"echo": lambda s: None, "runner": _fake_runner(calls)}
+    first = run_sweep(pts, tmp_path, infer_frames=3, **quiet)
+    assert calls == [p.point_id for p in pts]
+    assert not any(r["reused"] for r in first)
+    stored = json.loads((tmp_path / "points" / "tokenizer__default" / "result.json").read_text())
+    assert stored["fingerprint"] == point_fingerprint(pts[0], 3)
+
+    calls.clear()
+    again = run_sweep(pts, tmp_path, infer_frames=3, **quiet)
+    assert calls == [] and all(r["reused"] for r in again)
+    assert [r["train_s"] for r in again] == [r["train_s"] for r in first]
+
+    # A changed budget re-measures every point; one changed knob value only that point.
+    tok2 = {**TOK, "knobs": {"codebook_size": [64, 512], "latent_size": [[50, 50]]}}
+    run_sweep(expand_points(_preset(tokenizer=tok2)), tmp_path, infer_frames=3, **quiet)
+    assert calls == ["tokenizer__codebook_size-512"]
+    calls.clear()
+    run_sweep(pts, tmp_path, infer_frames=3, overwrite=True, **quiet)
+    assert calls == [p.point_id for p in pts]
+    with pytest.raises(ValueError, match="infer_frames: expected an int >= 1, got 0"):
+        run_sweep(pts, tmp_path, infer_frames=0, **quiet)
+
+
+# ---------------------------------------------------------------------- writers
+def _synthetic(stage="tokenizer"):
+    def res(knob, value, miou, train_s, infer_ms):
+        return {
+            "stage": stage, "knob": knob, "value": value,
+            "knob_value": format_value(value) if value else "",
+            "knob_values": {"codebook_size": "256"}, "steps": 100, "max_steps": 100,
+            "max_minutes": 1.5, "train_s": train_s, "train_wall_s": train_s + 3, "eval_s": 2.0,
+            "infer_ms": infer_ms, "infer_frames": 5, "peak_rss_mib": 600.0, "params": 1000,
+            "grid": "coarse", "experiment": "tokenizer_mini", "fingerprint": "f",
+            "metrics": {"val/miou": miou, "val/iou": 0.9},
+        }  # fmt: skip
+
+    return [
+        res("codebook_size", 64, 0.30, 20.0, 8.0),
+        res("default", None, 0.40, 40.0, 10.0),
+        res("codebook_size", 1024, 0.35, 80.0, 30.0),
+        res("latent_size", [50, 50], float("nan"), 10.0, 5.0),
+    ]
+
+
+def test_table_puts_the_default_first_with_ratios_against_it():
+    rows = result_rows(_synthetic())
+    table = stage_table(rows, "tokenizer")
+    lines = [line for line in table.splitlines() if line.startswith("| ")]
+    assert lines[1].startswith("| **default** (codebook_size=256) | 40.00 | +0.00 |")
+    assert (
+        "| codebook_size=64 | 30.00 | -10.00 | 90.00 | 100 | 20 | 0.50× | 8.0 | 0.80× |"
+        in (lines[2])
+    )
+    assert "| codebook_size=1024 | 35.00 | -5.00 |" in lines[3]
+    assert "| 80 | 2.00× | 30.0 | 3.00× |" in lines[3]
+    assert lines[4].startswith("| latent_size=50x50 | – | – |")  # NaN metric shown, not dropped
+    assert "100 steps, capped at 1.5 min" in table
+
+
+def test_outputs_csv_markdown_and_png(tmp_path):
+    results = _synthetic() + _synthetic("world_model")[:2]
+    for r in results[4:]:
+        r["metrics"] = {"val/model/miou_avg": 0.1, "val/model/l2_at_horizon_3s": 2.5}
+    paths = write_outputs(results, tmp_path, "title")
+    rows = list(csv.DictReader(paths["csv"].open()))
+    assert len(rows) == 6
+    assert rows[0]["metric_name"] == "val/miou" and float(rows[0]["metric"]) == 0.30
+    assert rows[4]["metric2_name"] == "val/model/l2_at_horizon_3s"
+    assert math.isnan(float(rows[3]["metric"]))
+    md = paths["md"].read_text()
+    assert md.startswith("# title") and "**tokenizer**" in md and "**world_model**" in md
+    assert "| 2.50 |" in md  # L2 in metres, not as a percentage
+    for stage in ("tokenizer", "world_model"):
+        png = paths[f"pareto_{stage}"]
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
+
+
+# ---------------------------------------------------------------------- end to end
+@pytest.fixture(scope="module")
+def converted(tiny_dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench_infos")
+    create_data(tiny_dataset, "v1.0-mini", out=out, options=ConvertOptions(progress=False))
+    return tiny_dataset, out
+
+
+def test_sweep_end_to_end_on_two_tiny_tokenizer_points(converted, tmp_path):
+    root, infos = converted
+    tiny = [
+        f"stage.infos_dir={infos}", "trainer.batch_size=2", "stage.model.latent_channels=8",
+        "stage.model.base_channels=8", "stage.model.codebook_size=32",
+    ]  # fmt: skip
+    preset = _preset(
+        tokenizer={
+            "experiment": "tokenizer_mini",
+            "budget": {"max_steps": 3, "max_minutes": 1},
+            "overrides": tiny,
+            "knobs": {"codebook_size": [16]},
+        }
+    )
+    pts = expand_points(preset, common=[f"dataset.data_root={root}"])
+    log: list[str] = []
+    results = run_sweep(pts, tmp_path, infer_frames=2, echo=log.append)
+    assert [r["steps"] for r in results] == [3, 3]
+    for r in results:
+        assert 0.0 <= r["metrics"]["val/miou"] <= 1.0
+        assert r["train_s"] > 0 and r["infer_ms"] > 0 and r["peak_rss_mib"] > 50
+        assert r["torch_threads"] == 1
+    assert results[0]["knob_values"]["codebook_size"] == "32"
+    assert results[1]["knob_value"] == "16"
+    # The knob really reached the trained model: its checkpoint's config has it.
+    ckpt = tmp_path / "points" / "tokenizer__codebook_size-16" / "train" / "checkpoints" / "last.pt"
+    stored = OmegaConf.create(load_checkpoint(ckpt)["config"])
+    assert stored.stage.model.codebook_size == 16
+    assert (
+        tmp_path / "points" / "tokenizer__codebook_size-16" / "eval" / "eval_metrics.json"
+    ).is_file()
+    again = run_sweep(pts, tmp_path, infer_frames=2, echo=log.append)
+    assert all(r["reused"] for r in again)
+    paths = write_outputs(again, tmp_path)
+    assert Path(paths["pareto_tokenizer"]).is_file()
+    assert any("reused" in line for line in log)
