@@ -211,8 +211,13 @@ def plot_pareto(rows: Sequence[Mapping[str, Any]], stage: str, path: Path) -> Pa
         ax.set_xlabel(xlabel)
         ax.set_ylabel(spec["metric"][2])
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
-    fig.suptitle(f"{stage}: accuracy vs cost (same training budget per point)", fontsize=10)
+        ax.legend(fontsize=7, loc="best")
+    steps = sorted({str(r["max_steps"]) for r in mine})
+    fig.suptitle(
+        f"{stage}: accuracy vs cost, same budget per point ({'/'.join(steps)} steps); "
+        "red: Pareto front",
+        fontsize=10,
+    )
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
