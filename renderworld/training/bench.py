@@ -7,7 +7,8 @@ nothing and is the reference of every ratio. Each point runs in its own subproce
 (``python -m renderworld.training.bench_point``: train, evaluate, time inference, report its own
 peak RSS), one at a time, and leaves ``<out>/points/<id>/result.json``. A point whose
 ``result.json`` carries the same fingerprint (stage, experiment, every override, the budget,
-the data root and the upstream checkpoint's size and mtime) is reused unless ``overwrite``.
+the data root and the upstream checkpoint's size and mtime) is reused unless ``overwrite``;
+the package's code is not fingerprinted (after changing a model, re-measure with ``overwrite``).
 """
 
 from __future__ import annotations
