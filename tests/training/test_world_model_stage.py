@@ -410,3 +410,44 @@ def test_eval_only_keys_are_rejected_where_they_do_not_apply(wm_overrides, tmp_p
     cfg.ckpt = str(tmp_path / "missing.pt")
     with pytest.raises(ValueError, match="camera_ckpt: .* needs pseudo_labels="):
         WorldModelStage(cfg)
+
+
+def _readme_blocks(section: str) -> dict[str, str]:
+    text = (REPO / "README.md").read_text()
+    body = text.split(f"## {section}\n", 1)[1].split("\n## ", 1)[0]
+    blocks = {}
+    for chunk in body.split("```")[1::2]:
+        lang, code = chunk.split("\n", 1)
+        blocks[lang.strip()] = code
+    return blocks
+
+
+def test_readme_planner_example_runs(trained, tokenizer_ckpt, tmp_path):
+    """The README's planner example, as written: bundle two checkpoints, then plan."""
+    run, _ = trained
+    blocks = _readme_blocks("Planner API")
+    assert set(blocks) == {"bash", "python"}
+    export = blocks["bash"].replace("\\\n", " ").strip()
+    assert export.startswith("python -c ")
+    for demo, real in (
+        ("outputs/demo/world_model/checkpoints/best.pt", run / "checkpoints" / "last.pt"),
+        ("outputs/demo/tokenizer/checkpoints/best.pt", tokenizer_ckpt),
+    ):
+        assert demo in export
+        export = export.replace(demo, str(real))
+    (tmp_path / "outputs").mkdir()
+    env = subprocess_env()
+    proc = subprocess.run(
+        ["bash", "-c", f"{PYTHON} {export[len('python ') :]}"], cwd=tmp_path, env=env,
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (tmp_path / "outputs" / "planner.pt").is_file()
+    proc = subprocess.run(
+        [PYTHON, "-c", blocks["python"]], cwd=tmp_path, env=env, capture_output=True,
+        text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = proc.stdout.strip().splitlines()
+    assert len(lines) == FUTURE + 1  # FUTURE trajectory rows, then shape and time
+    assert lines[-1].startswith(f"({FUTURE}, 50, 50, 4) ")
