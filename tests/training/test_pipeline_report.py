@@ -58,3 +58,15 @@ def test_report_has_one_world_model_table_pictures_and_no_empty_cell(tmp_path):
     assert "–: class absent from both GT and prediction" in text  # per-class tables
     assert "n/a" in text and "n/a: " in text  # the tokenizer's NaN camera-mask IoU
     assert not re.search(r"\|[ \t]*\|", text)
+
+
+def test_readme_pictures_are_checked_in_and_small():
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[2]
+    refs = re.findall(r"\]\((docs/figures/[^)]+\.png)\)", (repo / "README.md").read_text())
+    assert len(refs) >= 4
+    for ref in refs:
+        path = repo / ref
+        assert path.is_file(), ref
+        assert path.stat().st_size <= 160_000, (ref, path.stat().st_size)

@@ -451,3 +451,10 @@ def test_readme_planner_example_runs(trained, tokenizer_ckpt, tmp_path):
     lines = proc.stdout.strip().splitlines()
     assert len(lines) == FUTURE + 1  # FUTURE trajectory rows, then shape and time
     assert lines[-1].startswith(f"({FUTURE}, 50, 50, 4) ")
+
+
+def test_other_stages_reject_the_world_model_eval_keys(converted, tokenizer_ckpt, tmp_path):
+    cfg = compose_cfg(["stage=tokenizer", *_data(converted), f"ckpt={tokenizer_ckpt}",
+                       f"run_dir={tmp_path}", f"pseudo_labels={tmp_path}"], "eval")  # fmt: skip
+    with pytest.raises(ValueError, match=r"pseudo_labels: only stage=world_model reads it"):
+        evaluate(cfg)

@@ -16,6 +16,10 @@ per step (full volume, OccWorld protocol; and inside the camera mask, ``cam/``),
 (both conventions) and collision rates vs GT boxes and GT object occupancy, and the same for the
 baselines Copy&Paste, constant-velocity warp and constant-velocity trajectory (see
 :mod:`renderworld.training.stages.world_model_eval`). ``val/loss`` is the teacher-forced loss.
+Training validates the run's own setting; ``tools/eval.py ... pseudo_labels=DIR
+[camera_ckpt=PATH]`` scores the 3D-Occ and the Camera setting in one pass and one table (see
+:mod:`renderworld.training.stages.world_model_settings`); ``on_eval_end`` draws the pictures
+(:mod:`renderworld.training.stages.world_model_pictures`).
 """
 
 from __future__ import annotations
@@ -174,10 +178,10 @@ class WorldModelStage(Stage):
             return WorldModel(mine)
         for s in self.eval_settings:
             if s.ckpt:  # the Camera setting's own model (camera_ckpt), loaded strictly
-                self.setting_models[s.key] = self._load_setting_model(cfg, s.ckpt, mine)
+                self.setting_models[s.key] = self._load_setting_model(s.ckpt, mine)
         return self._model_of_checkpoint(ckpt, mine, "ckpt")
 
-    def _load_setting_model(self, cfg: Any, ckpt: str, mine: WorldModelConfig) -> nn.Module:
+    def _load_setting_model(self, ckpt: str, mine: WorldModelConfig) -> nn.Module:
         from renderworld.training.checkpoint import check_state_dict_keys
 
         model = self._model_of_checkpoint(ckpt, mine, "camera_ckpt")
