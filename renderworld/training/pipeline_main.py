@@ -20,8 +20,6 @@ from renderworld.training.report import (
     plot_training_curves,
     write_report,
 )
-from renderworld.training.stages.world_model_pictures import BEV_PNG, TRAJ_PNG
-from renderworld.training.stages.world_model_report import REPORT_BASENAME
 
 __all__ = ["main_job_steps", "run_main_job"]
 
@@ -243,6 +241,10 @@ def _demote_headings(md: str, levels: int = 2) -> str:
 
 
 def _report(cfg: Any, out: Path, results, seconds: float) -> Path:
+    # Imported here: the main job's own process stays light until it writes the report.
+    from renderworld.training.stages.world_model_pictures import BEV_PNG, TRAJ_PNG
+    from renderworld.training.stages.world_model_report import REPORT_BASENAME
+
     data = Path(str(cfg.data_root)).resolve()
     sim = load_json(data / "sim_report.json")
     sections = []
