@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 __all__ = [
+    "IGNORE_LABEL",
     "OCC3D_CLASSES",
     "NUM_OCC3D_CLASSES",
     "NUM_SEMANTIC_CLASSES",
@@ -68,6 +69,8 @@ NUM_OCC3D_CLASSES: int = len(OCC3D_CLASSES)  # 18, free included
 NUM_SEMANTIC_CLASSES: int = NUM_OCC3D_CLASSES - 1  # 17, the non-air classes 0..16
 FREE_ID: int = OCC3D_CLASSES.index("free")  # 17
 OTHERS_ID: int = OCC3D_CLASSES.index("others")  # 0
+#: 2-D label of pixels without a LiDAR point, and of points without semantics (depth-only sweeps).
+IGNORE_LABEL: int = 255
 #: Object classes used by the occupancy collision metric (barrier .. truck).
 OBJECT_CLASS_IDS: tuple[int, ...] = tuple(range(1, 11))
 

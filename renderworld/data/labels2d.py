@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from renderworld.constants import IGNORE_LABEL
 from renderworld.data.errors import DatasetError
 
 __all__ = [
@@ -35,8 +36,6 @@ __all__ = [
     "read_labels2d_params",
 ]
 
-#: Label of pixels without a LiDAR point, and of points without semantics (depth-only sweeps).
-IGNORE_LABEL = 255
 _MAX_PIXEL = np.iinfo(np.uint16).max
 
 

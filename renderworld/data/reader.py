@@ -24,6 +24,7 @@ from renderworld.constants import (
     OTHERS_ID,
     lidarseg_to_occ3d_lut,
 )
+from renderworld.data.boxes import boxes_frame
 from renderworld.data.errors import DatasetError
 from renderworld.data.occ3d import Occ3DLabels, load_occ3d_labels
 from renderworld.data.table_cache import TableCache
@@ -59,12 +60,6 @@ _REFERENCES: dict[str, list[tuple[str, str, bool]]] = {
     "lidarseg": [("sample_data_token", "sample_data", False)],
 }
 _CHAINED = ("sample", "sample_data", "sample_annotation")
-
-
-def _yaw_from_quaternions(q: np.ndarray) -> np.ndarray:
-    """Yaw (rad) about z of [N, 4] quaternions [w, x, y, z]."""
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 class NuScenesReader:
@@ -397,26 +392,8 @@ class NuScenesReader:
         self._sample_row(sample_token)
         ann = self.table("sample_annotation")
         rows = ann.iloc[self._annotations_by_sample.get(sample_token, np.zeros(0, int))]
-        inst = self.table("instance")
-        cat_tok = rows["instance_token"].map(inst["category_token"])
-        centre = np.asarray(rows["translation"].tolist(), dtype=np.float64).reshape(-1, 3)
-        size = np.asarray(rows["size"].tolist(), dtype=np.float64).reshape(-1, 3)
-        quat = np.asarray(rows["rotation"].tolist(), dtype=np.float64).reshape(-1, 4)
-        return pd.DataFrame(
-            {
-                "token": rows["token"].to_numpy(),
-                "instance_token": rows["instance_token"].to_numpy(),
-                "category": cat_tok.map(self.table("category")["name"]).to_numpy(),
-                "occ3d_class": cat_tok.map(self._category_occ3d).to_numpy(dtype=np.int64),
-                "center_x": centre[:, 0],
-                "center_y": centre[:, 1],
-                "center_z": centre[:, 2],
-                "width": size[:, 0],
-                "length": size[:, 1],
-                "height": size[:, 2],
-                "yaw": _yaw_from_quaternions(quat),
-                "num_lidar_pts": rows["num_lidar_pts"].to_numpy(dtype=np.int64),
-            }
+        return boxes_frame(
+            rows, self.table("instance"), self.table("category"), self._category_occ3d
         )
 
     # ------------------------------------------------------------------ Occ3D

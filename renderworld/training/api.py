@@ -102,6 +102,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
         shutdown_distributed(info)
 
 
+#: Top-level eval keys read by the world_model stage only (configs/eval.yaml).
+_WORLD_MODEL_EVAL_KEYS = ("pseudo_labels", "camera_ckpt")
+
+
 def evaluate(cfg: DictConfig) -> dict[str, float]:
     """Evaluate checkpoint ``cfg.ckpt`` on the stage's validation set.
 
@@ -124,6 +128,12 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         ckpt_path = Path(str(cfg.ckpt))
         ckpt = load_checkpoint(ckpt_path, expected_stage=str(cfg.stage.name))
         stage = _build_stage(cfg)
+        for key in _WORLD_MODEL_EVAL_KEYS:
+            if cfg.get(key) and stage.name != "world_model":
+                raise ValueError(
+                    f"{key}: only stage=world_model reads it (the Camera setting); "
+                    f"stage {stage.name!r} does not, remove {key}={cfg.get(key)}"
+                )
         seed_everything(_seed(cfg))
         _, val_set = stage.build_datasets(cfg)
         if val_set is None:

@@ -23,6 +23,12 @@ from renderworld.training.report import (
 
 __all__ = ["main_job_steps", "run_main_job"]
 
+NA = "–"
+ABSENT = (
+    "class absent from both GT and prediction on this split (IoU 0/0 is undefined; the class is "
+    "left out of the mIoU)"
+)
+
 VERSION = "v1.0-mini"
 
 
@@ -36,6 +42,7 @@ def _train_and_eval(
     inputs: tuple[Path, ...],
     extra: tuple[str, ...],
     ckpt: str = "best.pt",
+    evaluate: bool = True,
 ) -> list[Step]:
     """A training step (resumable from its ``last.pt``) and the step evaluating its checkpoint.
 
@@ -49,10 +56,11 @@ def _train_and_eval(
         inputs: code and configs fingerprinted for the training step.
         extra: overrides for the training command only.
         ckpt: the checkpoint file evaluated.
+        evaluate: False: the training step only (another step evaluates its checkpoint).
     """
     py, run = sys.executable, out / name
     base = (f"experiment={experiment}", *args)
-    return [
+    train = [
         Step(
             name,
             what[0],
@@ -62,7 +70,12 @@ def _train_and_eval(
             inputs=inputs,
             resume_args=("resume=true",),
             resume_marker=run / "checkpoints" / "last.pt",
-        ),
+        )
+    ]
+    if not evaluate:
+        return train
+    return [
+        *train,
         Step(
             f"{name}_eval",
             what[1],
@@ -146,17 +159,36 @@ def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
         wm_inputs = (pkg / "world", *configs("world_model", "world_model_mini"))
         steps += _train_and_eval(
             "world_model",
-            ("train the world model on GT occupancy tokens (3D-Occ setting)",
-             "forecast and plan on mini_val beside the baselines"),  # fmt: skip
+            ("train the world model on GT occupancy tokens (3D-Occ setting)", ""),
             "world_model_mini", (*common, *tok), out, ("tokenizer",), wm_inputs, extra,
+            evaluate=False,
         )  # fmt: skip
         steps += _train_and_eval(
             "world_model_camera",
-            ("train the world model on Img2Occ pseudo labels (Camera setting)",
-             "forecast from pseudo labels, scored against GT (Camera setting)"),  # fmt: skip
+            ("train the world model on Img2Occ pseudo labels (Camera setting)", ""),
             "world_model_mini", (*common, *tok, f"stage.occ_root={pseudo}"), out,
-            ("tokenizer", "pseudo_labels"), wm_inputs, extra,
+            ("tokenizer", "pseudo_labels"), wm_inputs, extra, evaluate=False,
         )  # fmt: skip
+        # One evaluation, one table: both settings, model and baselines (issue 9 item 4).
+        steps.append(
+            Step(
+                "world_model_eval",
+                "forecast and plan on mini_val beside the baselines: 3D-Occ and Camera settings",
+                (
+                    py,
+                    "tools/eval.py",
+                    "experiment=world_model_mini",
+                    *common,
+                    *tok,
+                    f"ckpt={out / 'world_model' / 'checkpoints' / 'best.pt'}",
+                    f"pseudo_labels={pseudo}",
+                    f"camera_ckpt={out / 'world_model_camera' / 'checkpoints' / 'best.pt'}",
+                    f"run_dir={out / 'world_model_eval'}",
+                ),  # fmt: skip
+                out / "world_model_eval",
+                depends_on=("world_model", "world_model_camera", "pseudo_labels"),
+            )
+        )
     return steps
 
 
@@ -202,7 +234,17 @@ def _bev_figure(cfg: Any, out: Path) -> Path | None:
     return path
 
 
+def _demote_headings(md: str, levels: int = 2) -> str:
+    """Markdown with every heading ``levels`` deeper (a stage's own file inside a section)."""
+    return "\n".join("#" * levels + line if line.startswith("#") else line
+                     for line in md.splitlines())  # fmt: skip
+
+
 def _report(cfg: Any, out: Path, results, seconds: float) -> Path:
+    # Imported here: the main job's own process stays light until it writes the report.
+    from renderworld.training.stages.world_model_pictures import BEV_PNG, TRAJ_PNG
+    from renderworld.training.stages.world_model_report import REPORT_BASENAME
+
     data = Path(str(cfg.data_root)).resolve()
     sim = load_json(data / "sim_report.json")
     sections = []
@@ -237,24 +279,29 @@ def _report(cfg: Any, out: Path, results, seconds: float) -> Path:
                 ("IoU inside the camera mask", "val/cam/iou"),
             ],  # fmt: skip
         )
-        body += "\n\nPer-class IoU (%, full volume):\n\n" + per_class_table(tok, "val/")
+        classes = per_class_table(tok, "val/")
+        body += "\n\nPer-class IoU (%, full volume):\n\n" + classes
+        legend = [f"{NA}: {ABSENT}"] if NA in classes else []
+        if "n/a" in body:
+            legend.append(
+                "n/a: not in this evaluation's metrics, or undefined (0/0: nothing occupied in "
+                "GT or reconstruction in that region)"
+            )
+        body += "".join(f"\n\n{x}" for x in legend)
         sections.append(("Tokenizer reconstruction (AM-VAE, mini_val, GT occupancy)", body))
     i2o_table = out / "img2occ_eval" / "occ3d_metrics.md"
     if i2o_table.is_file():
-        sections.append(("3-D occupancy from cameras (Img2Occ, mini_val)", i2o_table.read_text()))
-    wm_tables = sorted((out / "world_model_eval").glob("*.md"))
-    if wm_tables:
-        body = "\n\n".join(p.read_text() for p in wm_tables)
-        sections.append(("Forecasting and planning (mini_val, 3D-Occ setting)", body))
-    cam_tables = sorted((out / "world_model_camera_eval").glob("*.md"))
-    if cam_tables:
-        body = "\n\n".join(p.read_text() for p in cam_tables)
+        body = _demote_headings(i2o_table.read_text())
+        if NA in body and "absent" not in body:
+            body += f"\n\n{NA}: {ABSENT}"
+        sections.append(("3-D occupancy from cameras (Img2Occ, mini_val)", body))
+    wm_table = out / "world_model_eval" / f"{REPORT_BASENAME}.md"
+    if wm_table.is_file():
         sections.append(
             (
-                "Forecasting and planning (mini_val, Camera setting: Img2Occ pseudo-label inputs, "
-                "GT targets)",
-                body,
-            )  # fmt: skip
+                "Forecasting and planning (mini_val; 3D-Occ and Camera settings)",
+                wm_table.read_text(),
+            )
         )
     figures = []
     for run in ("img2occ", "tokenizer", "world_model", "world_model_camera"):
@@ -272,15 +319,17 @@ def _report(cfg: Any, out: Path, results, seconds: float) -> Path:
     bev = _bev_figure(cfg, out)
     if bev:
         figures.append(f"![BEV GT vs reconstruction](figures/{bev.name})")
+    for name, caption in (
+        (BEV_PNG, "BEV occupancy: GT vs Img2Occ pseudo label vs forecasts at +1/2/3 s"),
+        (TRAJ_PNG, "Planned vs GT trajectories over the BEV (3D-Occ model, CV baseline)"),
+    ):
+        png = out / "world_model_eval" / name
+        if png.is_file():
+            (out / "figures").mkdir(parents=True, exist_ok=True)
+            (out / "figures" / name).write_bytes(png.read_bytes())
+            figures.append(f"![{caption}](figures/{name})")
     if figures:
         sections.append(("Pictures", "\n\n".join(figures)))
-    sections.append(
-        (
-            "Not in this run yet",
-            "Img2Occ (camera → occupancy with Gaussian splatting), its pseudo labels and the "
-            "'Camera' setting are not wired into the main job yet (issue 7 / 10).",
-        )  # fmt: skip
-    )
     return write_report(out, sections)
 
 

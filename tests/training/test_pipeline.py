@@ -91,6 +91,18 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
         assert set(s.depends_on) <= set(names[:i]), s.name  # upstream steps run first
         if s.command[1] == "tools/train.py":  # every training step resumes from its last.pt
             assert s.resume_marker == s.out_dir / "checkpoints" / "last.pt"
-            assert f"{s.name}_eval" in names
+            # ... and a later step evaluates its checkpoint
+            ckpt = s.out_dir / "checkpoints" / "best.pt"
+            evals = [e for e in steps[i + 1 :] if e.command[1] == "tools/eval.py"]
+            assert any(str(ckpt) in " ".join(e.command) for e in evals), s.name
     for required in ("fixtures", "infos", "tokenizer", "img2occ", "pseudo_labels"):
         assert required in names
+    # One world-model evaluation after both trainings: one table with both settings.
+    wm = steps[names.index("world_model_eval")]
+    assert names.index("world_model_eval") > names.index("world_model_camera")
+    assert set(wm.depends_on) == {"world_model", "world_model_camera", "pseudo_labels"}
+    args = dict(a.split("=", 1) for a in wm.command[2:])
+    assert args["pseudo_labels"] == str(tmp_path / "out" / "pseudo_labels")
+    assert args["camera_ckpt"].endswith("world_model_camera/checkpoints/best.pt")
+    assert args["ckpt"].endswith("world_model/checkpoints/best.pt")
+    assert "world_model_camera_eval" not in names

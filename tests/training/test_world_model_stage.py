@@ -227,11 +227,13 @@ def test_eval_tool_prints_the_table_and_writes_csv_and_markdown(trained, wm_over
     out = proc.stdout
     assert "mIoU over classes 0..16, full volume (OccWorld protocol)" in out
     assert "L2 at horizon (UniAD); mean-to-horizon in CSV" in out
-    header = next(line for line in out.splitlines() if line.startswith("method"))
-    for col in ("mIoU 1s", "mIoU 2s", "mIoU avg", "IoU avg", "L2 1s", "L2 avg", "Col 2s"):
+    header = next(line for line in out.splitlines() if line.startswith("setting"))
+    for col in ("method", "mIoU 1s", "mIoU 2s", "mIoU avg", "IoU avg", "L2 1s", "L2 avg", "Col 2s"):
         assert col in header
-    labels = [line.split()[0] for line in out.splitlines()[out.splitlines().index(header) + 1 :]]
-    assert labels[:4] == ["model", "Copy&Paste", "CV-warp", "CV-trajectory"]
+    body = out.splitlines()[out.splitlines().index(header) + 1 :][:4]
+    assert [line.split()[:2] for line in body] == [
+        ["3D-Occ", m] for m in ("model", "Copy&Paste", "CV-warp", "CV-trajectory")
+    ]
     rows = {r["method"]: r for r in csv.DictReader((tmp_path / "world_model_eval.csv").open())}
     assert list(rows) == ["model", "Copy&Paste", "CV-warp", "CV-trajectory"]
     saved = json.loads((tmp_path / "eval_metrics.json").read_text())
@@ -242,7 +244,10 @@ def test_eval_tool_prints_the_table_and_writes_csv_and_markdown(trained, wm_over
     assert rows["CV-trajectory"]["miou_1s_pct"] == ""  # not applicable: left empty
     assert rows["Copy&Paste"]["l2_at_horizon_avg_m"] == ""
     md = (tmp_path / "world_model_eval.md").read_text()
-    assert "| model |" in md and "| CV-warp |" in md and "OccWorld protocol" in md
+    assert "| 3D-Occ | model |" in md and "| 3D-Occ | CV-warp |" in md and "OccWorld protocol" in md
+    assert "–: not applicable" in md  # the dashes are explained under the table
+    for name in ("bev_forecast.png", "trajectories.png"):  # pictures of the evaluation
+        assert (tmp_path / name).stat().st_size > 5_000
 
 
 def test_eval_takes_the_architecture_from_the_checkpoint(trained, wm_overrides, tmp_path):
@@ -342,3 +347,114 @@ def test_camera_setting_scores_pseudo_label_inputs_against_gt(converted, tmp_pat
     assert (item["occ_target"] != FREE_ID).any()
     # Without gt_targets (training windows) nothing extra is loaded.
     assert "occ_target" not in WorldModelWindows(infos, root, "coarse", 3, 2, occ_root=pseudo)[0]
+
+
+def _pseudo_labels(converted, out, free: bool):
+    """Pseudo labels in the export layout: the GT itself, or all free (a labeller that sees
+    nothing)."""
+    from renderworld.constants import FREE_ID
+    from renderworld.data import load_occ3d_labels, save_occ3d_labels
+
+    root, infos_dir = converted
+    for split in ("train", "val"):
+        infos = load_infos(infos_dir, split)
+        for scene, token, occ_path in zip(
+            infos["scene_name"], infos["sample_token"], infos["occ_path"], strict=True
+        ):
+            gt = load_occ3d_labels(root / occ_path)
+            sem = np.full_like(gt.semantics, FREE_ID) if free else gt.semantics
+            save_occ3d_labels(
+                out / scene / token / "labels.npz", sem, gt.mask_lidar, gt.mask_camera
+            )
+    return out
+
+
+def test_one_eval_scores_both_settings_in_one_table(trained, wm_overrides, converted, tmp_path):
+    run, _ = trained
+    ckpt = run / "checkpoints" / "last.pt"
+    same = _pseudo_labels(converted, tmp_path / "same", free=False)
+    cfg = compose_cfg([*wm_overrides, f"ckpt={ckpt}", f"run_dir={tmp_path / 'a'}",
+                       f"pseudo_labels={same}", f"camera_ckpt={ckpt}"], "eval")  # fmt: skip
+    m = evaluate(cfg)
+    # Pseudo labels equal to GT and the same model: the Camera rows equal the 3D-Occ rows.
+    names = [k for k in m if k.startswith("val/") and not k.startswith("val/camera/")]
+    scored = [k for k in names if "/" in k[4:]]
+    assert scored and all(f"val/camera/{k[4:]}" in m for k in scored)
+    for k in scored:
+        assert m[f"val/camera/{k[4:]}"] == pytest.approx(m[k], rel=1e-9, nan_ok=True), k
+    rows = list(csv.DictReader((tmp_path / "a" / "world_model_eval.csv").open()))
+    assert [r["setting"] for r in rows] == ["3D-Occ"] * 4 + ["Camera"] * 4
+    assert (
+        "Camera = Img2Occ pseudo-label inputs"
+        in (tmp_path / "a" / "world_model_eval.md").read_text()
+    )
+
+    # All-free pseudo labels: the Camera baselines forecast nothing, the 3D-Occ ones are as
+    # before; the default Camera model is the ckpt's (no camera_ckpt).
+    free = _pseudo_labels(converted, tmp_path / "free", free=True)
+    cfg = compose_cfg([*wm_overrides, f"ckpt={ckpt}", f"run_dir={tmp_path / 'b'}",
+                       f"pseudo_labels={free}"], "eval")  # fmt: skip
+    m2 = evaluate(cfg)
+    assert m2["val/copy_paste/miou_1s"] == pytest.approx(m["val/copy_paste/miou_1s"], rel=1e-12)
+    assert m2["val/model/miou_1s"] == pytest.approx(m["val/model/miou_1s"], rel=1e-12)
+    assert m2["val/camera/copy_paste/iou_1s"] == 0.0  # all free vs GT with occupied voxels
+    assert m2["val/camera/cv_traj/l2_at_horizon_1s"] == pytest.approx(
+        m["val/cv_traj/l2_at_horizon_1s"]  # trajectories do not depend on occupancy
+    )
+    png = tmp_path / "b" / "bev_forecast.png"
+    assert png.stat().st_size > 5_000
+
+
+def test_eval_only_keys_are_rejected_where_they_do_not_apply(wm_overrides, tmp_path):
+    cfg = compose_cfg([*wm_overrides, f"run_dir={tmp_path}", f"camera_ckpt={tmp_path}"], "eval")
+    cfg.ckpt = str(tmp_path / "missing.pt")
+    with pytest.raises(ValueError, match="camera_ckpt: .* needs pseudo_labels="):
+        WorldModelStage(cfg)
+
+
+def _readme_blocks(section: str) -> dict[str, str]:
+    text = (REPO / "README.md").read_text()
+    body = text.split(f"## {section}\n", 1)[1].split("\n## ", 1)[0]
+    blocks = {}
+    for chunk in body.split("```")[1::2]:
+        lang, code = chunk.split("\n", 1)
+        blocks[lang.strip()] = code
+    return blocks
+
+
+def test_readme_planner_example_runs(trained, tokenizer_ckpt, tmp_path):
+    """The README's planner example, as written: bundle two checkpoints, then plan."""
+    run, _ = trained
+    blocks = _readme_blocks("Planner API")
+    assert set(blocks) == {"bash", "python"}
+    export = blocks["bash"].replace("\\\n", " ").strip()
+    assert export.startswith("python -c ")
+    for demo, real in (
+        ("outputs/demo/world_model/checkpoints/best.pt", run / "checkpoints" / "last.pt"),
+        ("outputs/demo/tokenizer/checkpoints/best.pt", tokenizer_ckpt),
+    ):
+        assert demo in export
+        export = export.replace(demo, str(real))
+    (tmp_path / "outputs").mkdir()
+    env = subprocess_env()
+    proc = subprocess.run(
+        ["bash", "-c", f"{PYTHON} {export[len('python ') :]}"], cwd=tmp_path, env=env,
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (tmp_path / "outputs" / "planner.pt").is_file()
+    proc = subprocess.run(
+        [PYTHON, "-c", blocks["python"]], cwd=tmp_path, env=env, capture_output=True,
+        text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = proc.stdout.strip().splitlines()
+    assert len(lines) == FUTURE + 1  # FUTURE trajectory rows, then shape and time
+    assert lines[-1].startswith(f"({FUTURE}, 50, 50, 4) ")
+
+
+def test_other_stages_reject_the_world_model_eval_keys(converted, tokenizer_ckpt, tmp_path):
+    cfg = compose_cfg(["stage=tokenizer", *_data(converted), f"ckpt={tokenizer_ckpt}",
+                       f"run_dir={tmp_path}", f"pseudo_labels={tmp_path}"], "eval")  # fmt: skip
+    with pytest.raises(ValueError, match=r"pseudo_labels: only stage=world_model reads it"):
+        evaluate(cfg)

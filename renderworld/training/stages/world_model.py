@@ -16,14 +16,17 @@ per step (full volume, OccWorld protocol; and inside the camera mask, ``cam/``),
 (both conventions) and collision rates vs GT boxes and GT object occupancy, and the same for the
 baselines Copy&Paste, constant-velocity warp and constant-velocity trajectory (see
 :mod:`renderworld.training.stages.world_model_eval`). ``val/loss`` is the teacher-forced loss.
+Training validates the run's own setting; ``tools/eval.py ... pseudo_labels=DIR
+[camera_ckpt=PATH]`` scores the 3D-Occ and the Camera setting in one pass and one table (see
+:mod:`renderworld.training.stages.world_model_settings`); ``on_eval_end`` draws the pictures
+(:mod:`renderworld.training.stages.world_model_pictures`).
 """
 
 from __future__ import annotations
 
-import os
 import warnings
 from contextlib import nullcontext
-from dataclasses import dataclass, fields
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -32,16 +35,23 @@ from omegaconf import OmegaConf
 from torch import nn
 from torch.utils.data import Dataset
 
-from renderworld.constants import FUTURE_FRAMES
 from renderworld.data import load_infos
 from renderworld.metrics import PlanningMetric
-from renderworld.planning import register_tokenizer, save_planner_bundle
-from renderworld.tokenizer import SceneTokenizer, Tokens, build_tokenizer
+from renderworld.tokenizer import SceneTokenizer, Tokens
 from renderworld.training.checkpoint import CheckpointError, load_checkpoint
 from renderworld.training.registry import Stage, register_stage, sum_count
 from renderworld.training.stages import world_model_eval as wme
 from renderworld.training.stages.common import grid_of, infos_dir
 from renderworld.training.stages.tokenizer import load_tokenizer
+from renderworld.training.stages.world_model_bundle import TOKENIZER_KIND, export_planner_bundle
+from renderworld.training.stages.world_model_settings import (
+    EvalSetting,
+    check_same_tokenizer,
+    eval_settings,
+    setting_header,
+    stage_settings,
+    world_model_config,
+)
 from renderworld.world import (
     WorldModel,
     WorldModelConfig,
@@ -59,73 +69,8 @@ __all__ = [
     "TOKENIZER_KIND",
 ]
 
-#: Name of :class:`SceneTokenizer` in planner bundles.
-TOKENIZER_KIND = "scene_tokenizer"
-register_tokenizer(TOKENIZER_KIND, SceneTokenizer, from_config=build_tokenizer)
 
-# WorldModelConfig fields that come from the tokenizer and the stage, not from stage.model.
-_DERIVED = ("codebook_sizes", "token_grid", "history_frames", "future_frames")
 _ENCODE_CHUNK = 16  # frames per tokenizer call (bounds memory on the Occ3D grid)
-
-
-@dataclass(frozen=True)
-class _Settings:
-    tokenizer_ckpt: str
-    history: int
-    future: int
-    lambda_l2: float
-    cache_tokens: bool
-
-
-def _settings(cfg: Any) -> _Settings:
-    s = cfg.stage
-    history, future, lam = s.get("history"), s.get("future"), s.get("lambda_l2")
-    if not isinstance(history, int) or isinstance(history, bool) or history < 2:
-        raise ValueError(
-            f"stage.history: expected an int >= 2 (the constant-velocity baselines need one "
-            f"displacement), got {history!r}"
-        )
-    if not isinstance(future, int) or isinstance(future, bool) or not 1 <= future <= FUTURE_FRAMES:
-        raise ValueError(f"stage.future: expected an int in 1..{FUTURE_FRAMES}, got {future!r}")
-    if not isinstance(lam, (int, float)) or isinstance(lam, bool) or not lam >= 0:
-        raise ValueError(f"stage.lambda_l2: expected a number >= 0, got {lam!r}")
-    ckpt = s.get("tokenizer_ckpt")
-    if not ckpt:
-        raise ValueError(
-            "stage.tokenizer_ckpt: required; pass the tokenizer run's checkpoint, e.g. "
-            "stage.tokenizer_ckpt=outputs/train/tokenizer/<time>/checkpoints/best.pt"
-        )
-    return _Settings(str(ckpt), history, future, float(lam), bool(s.get("cache_tokens", True)))
-
-
-def world_model_config(cfg: Any, tokenizer_cfg: Any) -> WorldModelConfig:
-    """The :class:`WorldModelConfig` of a run config on a tokenizer.
-
-    Args:
-        cfg: run config (``stage.model`` fields, ``stage.history``, ``stage.future``).
-        tokenizer_cfg: the tokenizer's ``TokenizerConfig`` (codebook sizes, latent grid).
-
-    Raises:
-        ValueError: unknown ``stage.model`` keys, or keys that the tokenizer / stage set.
-    """
-    st = _settings(cfg)
-    model = OmegaConf.to_container(cfg.stage.model, resolve=True) if cfg.stage.model else {}
-    known = {f.name for f in fields(WorldModelConfig)} - set(_DERIVED)
-    for key in model:
-        if key in _DERIVED:
-            raise ValueError(
-                f"stage.model.{key}: set by the tokenizer / stage.history / stage.future, "
-                "remove it from stage.model"
-            )
-        if key not in known:
-            raise ValueError(f"stage.model.{key}: unknown key; expected one of {sorted(known)}")
-    return WorldModelConfig(
-        codebook_sizes=tuple(tokenizer_cfg.codebook_sizes),
-        token_grid=tuple(tokenizer_cfg.latent_shape),
-        history_frames=st.history,
-        future_frames=st.future,
-        **model,
-    )
 
 
 def _no_autocast(device: torch.device):
@@ -140,11 +85,15 @@ class WorldModelStage(Stage):
 
     def __init__(self, cfg: Any) -> None:
         super().__init__(cfg)
-        self.settings = _settings(cfg)
+        self.settings = stage_settings(cfg)
         self.grid = grid_of(cfg)
         self.horizons = wme.horizons_for(self.settings.future)
         self._tokenizer: SceneTokenizer | None = None
-        self._codes: dict[str, torch.Tensor] = {}
+        self._codes: dict[tuple[str, str], torch.Tensor] = {}
+        self.eval_settings, self._val_occ_root = eval_settings(cfg)
+        #: Models of settings evaluated with their own checkpoint (``camera_ckpt``), by key.
+        self.setting_models: dict[str, nn.Module] = {}
+        self._val_set: Dataset | None = None
 
     # ------------------------------------------------------------------ tokenizer
     @property
@@ -172,17 +121,33 @@ class WorldModelStage(Stage):
         return tok
 
     @torch.no_grad()
-    def window_tokens(self, batch: dict, frames: int, device: torch.device) -> torch.Tensor:
+    def window_tokens(
+        self,
+        batch: dict,
+        frames: int,
+        device: torch.device,
+        inputs: str = "occ",
+        source: str | None = None,
+    ) -> torch.Tensor:
         """Codes [B, frames, G, h, w] int64 on ``device`` of a batch's first ``frames`` frames.
 
-        Frames already encoded (same sample token) come from the in-memory cache.
+        Args:
+            inputs: batch key of the occupancy to encode (``"occ"`` or ``"occ_target"``).
+            source: name of that occupancy's source (cache key with the sample token);
+                default: the run's ``stage.occ_root`` or ``"gt"``.
+
+        Frames already encoded (same source and sample token) come from the in-memory cache.
         """
-        occ = batch["occ"]
+        occ = batch[inputs]
         b = occ.shape[0]
-        keys = [row[:frames] for row in wme.frame_keys(batch, b, occ.shape[1])]
+        if source is None:
+            source = str(self.cfg.stage.get("occ_root") or "gt")
+        keys = [
+            [(source, k) for k in row[:frames]] for row in wme.frame_keys(batch, b, occ.shape[1])
+        ]
         tok = self._tokenizer_on(device)
         cache = self._codes if self.settings.cache_tokens else {}
-        todo: dict[str, tuple[int, int]] = {}
+        todo: dict[tuple[str, str], tuple[int, int]] = {}
         for i, row in enumerate(keys):
             for j, key in enumerate(row):
                 if key not in cache and key not in todo:
@@ -211,8 +176,28 @@ class WorldModelStage(Stage):
         ckpt = cfg.get("ckpt") if cfg.get("task") == "eval" else None
         if not ckpt or not Path(str(ckpt)).is_file():
             return WorldModel(mine)
-        stored = OmegaConf.create(load_checkpoint(ckpt, expected_stage="world_model")["config"])
-        _check_same_tokenizer(stored, self.settings.tokenizer_ckpt)
+        for s in self.eval_settings:
+            if s.ckpt:  # the Camera setting's own model (camera_ckpt), loaded strictly
+                self.setting_models[s.key] = self._load_setting_model(s.ckpt, mine)
+        return self._model_of_checkpoint(ckpt, mine, "ckpt")
+
+    def _load_setting_model(self, ckpt: str, mine: WorldModelConfig) -> nn.Module:
+        from renderworld.training.checkpoint import check_state_dict_keys
+
+        model = self._model_of_checkpoint(ckpt, mine, "camera_ckpt")
+        state = load_checkpoint(ckpt, expected_stage="world_model")["model"]
+        check_state_dict_keys(model, state, source=f"camera_ckpt {ckpt!r}")
+        model.load_state_dict(state, strict=True)
+        return model.eval()
+
+    def _model_of_checkpoint(self, ckpt: Any, mine: WorldModelConfig, what: str) -> WorldModel:
+        """A world model with the architecture stored in ``ckpt`` (checked against ``mine``)."""
+        try:
+            stored = load_checkpoint(ckpt, expected_stage="world_model")["config"]
+        except CheckpointError as err:
+            raise CheckpointError(f"{what}: {err}") from err
+        stored = OmegaConf.create(stored)
+        check_same_tokenizer(stored, self.settings.tokenizer_ckpt)
         theirs = world_model_config(stored, self.tokenizer.cfg)
         diff = [
             f.name
@@ -222,7 +207,7 @@ class WorldModelStage(Stage):
         for key, name in (("history_frames", "history"), ("future_frames", "future")):
             if key in diff:
                 raise ValueError(
-                    f"stage.{name}: the checkpoint {str(ckpt)!r} was trained with "
+                    f"stage.{name}: the checkpoint {str(ckpt)!r} ({what}) was trained with "
                     f"{getattr(theirs, key)}, this run has {getattr(mine, key)}; pass "
                     f"stage.{name}={getattr(theirs, key)}"
                 )
@@ -239,17 +224,19 @@ class WorldModelStage(Stage):
     def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
         _ = self.tokenizer  # a wrong stage.tokenizer_ckpt fails before any data is read
         folder = infos_dir(cfg)
-        occ_root, root = cfg.stage.get("occ_root"), str(cfg.dataset.data_root)
-        st = self.settings
+        root, st = str(cfg.dataset.data_root), self.settings
 
-        def windows(split: str, gt_targets: bool) -> wme.WorldModelWindows:
+        def windows(split: str, occ_root, gt_targets: bool) -> wme.WorldModelWindows:
             infos = load_infos(folder, split)
             return wme.WorldModelWindows(
                 infos, root, self.grid, st.history, st.future, occ_root, gt_targets
             )
 
-        # Camera setting: train on pseudo labels; validate pseudo-label inputs against GT.
-        return windows(cfg.dataset.train_split, False), windows(cfg.dataset.val_split, True)
+        # Camera setting: train on pseudo labels; validate pseudo-label inputs against GT (with
+        # pseudo_labels=DIR at eval, the same windows give both settings' inputs).
+        train = windows(cfg.dataset.train_split, cfg.stage.get("occ_root"), False)
+        self._val_set = windows(cfg.dataset.val_split, self._val_occ_root, True)
+        return train, self._val_set
 
     def _teacher_forced(self, model: nn.Module, batch: dict, tokens: torch.Tensor):
         st = self.settings
@@ -268,51 +255,93 @@ class WorldModelStage(Stage):
         logs = {k: v.detach() for k, v in terms.items() if k != "loss"}
         return terms["loss"], logs
 
+    @torch.no_grad()
+    def forecast(
+        self, model: nn.Module, batch: dict, setting: EvalSetting, tokens: torch.Tensor | None
+    ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """Forecasts and plans of the model and the baselines for one setting's inputs.
+
+        Args:
+            model: the world model of ``setting`` (unwrapped), on the batch's device.
+            batch: a collated batch of :class:`WorldModelWindows` on that device.
+            setting: whose history occupancy (``setting.inputs``) is rolled out.
+            tokens: codes [B, >=history, G, h, w] of those inputs, or None to encode them.
+
+        Returns:
+            (``{method: [B, S, X, Y, Z] uint8}`` forecasts, ``{method: [B, S, 2]}`` trajectories
+            in metres, current ego frame), methods as in :data:`world_model_eval.METHODS`.
+        """
+        st = self.settings
+        h, f = st.history, st.future
+        occ, disp = batch[setting.inputs], batch["ego_displacements"].float()
+        device = disp.device
+        if tokens is None:
+            tokens = self.window_tokens(batch, h, device, setting.inputs, setting.source)
+        tok = self._tokenizer_on(device)
+        ro = model.rollout(tokens[:, :h], disp[:, : h - 1], batch["command"].long(), steps=f)
+        with _no_autocast(device):
+            names = tok.cfg.codebook_names
+            frames = [
+                tok.decode(Tokens(ro.tokens[:, k], tok.cfg.codebook_sizes, names)) for k in range(f)
+            ]
+        current = occ[:, h - 1]
+        forecasts = {
+            "model": torch.stack(frames, dim=1),
+            "copy_paste": copy_paste_forecast(current, f),
+            "warp_cv": warp_constant_velocity_forecast(current, disp[:, h - 2], f, self.grid),
+        }
+        trajs = {
+            "model": ro.trajectory,
+            "cv_traj": constant_velocity_trajectory(disp[:, : h - 1], f),
+        }
+        return forecasts, trajs
+
+    def setting_model(self, model: nn.Module, setting: EvalSetting) -> nn.Module:
+        """The model a setting is scored with: its own checkpoint's, else ``model``."""
+        raw = model.module if hasattr(model, "module") else model
+        own = self.setting_models.get(setting.key)
+        if own is None:
+            return raw
+        device = next(raw.parameters()).device
+        if next(own.parameters()).device != device:
+            self.setting_models[setting.key] = own = own.to(device)
+        return own
+
     def evaluate(self, model: nn.Module, loader: Any) -> dict[str, torch.Tensor]:
         raw = model.module if hasattr(model, "module") else model
         device = next(raw.parameters()).device
         st, hs = self.settings, self.horizons
         h, f = st.history, st.future
-        tok = self._tokenizer_on(device)
-        stats = wme.empty_forecast_stats(f, device)
-        plan = {p: PlanningMetric(f, hs, occupancy_grid=self.grid) for p in wme.PLANNERS}
+        stats: dict[str, torch.Tensor] = {}
+        plan: dict[str, PlanningMetric] = {}
+        for s in self.eval_settings:
+            stats.update(wme.empty_forecast_stats(f, device, s.prefix))
+            for p in wme.PLANNERS:
+                plan[f"{s.prefix}{p}"] = PlanningMetric(f, hs, occupancy_grid=self.grid)
         sums: dict[str, list[torch.Tensor]] = {"loss": [], "token_ce": [], "l2": []}
+        first = self.eval_settings[0]
         for batch in loader:
             batch = self.transfer_batch(batch, device)
-            occ, disp, cmd = batch["occ"], batch["ego_displacements"].float(), batch["command"]
-            tokens = self.window_tokens(batch, occ.shape[1], device)
-            terms = self._teacher_forced(raw, batch, tokens)
-            b = occ.shape[0]
+            occ = batch[first.inputs]
+            # Teacher-forced loss of the first setting's model on its whole window.
+            tokens = self.window_tokens(batch, occ.shape[1], device, first.inputs, first.source)
+            terms = self._teacher_forced(self.setting_model(raw, first), batch, tokens)
             for k in sums:
-                sums[k].append(terms[k].detach().double().cpu().expand(b))
-
-            ro = raw.rollout(tokens[:, :h], disp[:, : h - 1], cmd.long(), steps=f)
-            with _no_autocast(device):
-                frames = [
-                    tok.decode(
-                        Tokens(ro.tokens[:, k], tok.cfg.codebook_sizes, tok.cfg.codebook_names)
-                    )
-                    for k in range(f)
-                ]
-            current = occ[:, h - 1]
-            forecasts = {
-                "model": torch.stack(frames, dim=1),
-                "copy_paste": copy_paste_forecast(current, f),
-                "warp_cv": warp_constant_velocity_forecast(current, disp[:, h - 2], f, self.grid),
-            }
+                sums[k].append(terms[k].detach().double().cpu().expand(occ.shape[0]))
             valid = batch["future_mask"].bool()
             target = batch.get("occ_target", occ)[:, h:]
             target_mask = batch.get("mask_camera_target", batch["mask_camera"])[:, h:]
-            wme.add_forecast_stats(stats, forecasts, target, target_mask, valid)
-            trajs = {
-                "model": ro.trajectory,
-                "cv_traj": constant_velocity_trajectory(disp[:, : h - 1], f),
-            }
-            wme.update_planning(plan, trajs, batch, target, valid)
+            for s in self.eval_settings:
+                forecasts, trajs = self.forecast(
+                    self.setting_model(raw, s), batch, s, tokens if s is first else None
+                )
+                wme.add_forecast_stats(stats, forecasts, target, target_mask, valid, s.prefix)
+                mine = {p: plan[f"{s.prefix}{p}"] for p in wme.PLANNERS}
+                wme.update_planning(mine, trajs, batch, target, valid)
         for k, vals in sums.items():
             stats.update(sum_count(k, torch.cat(vals) if vals else torch.zeros(0)))
-        for p in plan:
-            stats.update(wme.planning_to_stats(plan[p], f"{p}/plan"))
+        for key, metric in plan.items():
+            stats.update(wme.planning_to_stats(metric, f"{key}/plan"))
         return stats
 
     def compute_metrics(self, stats: dict[str, torch.Tensor]) -> dict[str, float]:
@@ -323,80 +352,42 @@ class WorldModelStage(Stage):
             for k in ("loss", "token_ce", "l2")
         }
         out["num_windows"] = float(stats["loss/count"])
-        for p, _, has_occ, has_traj in wme.METHODS:
-            if has_occ:
-                full = wme.forecast_from_stats(stats, f"{p}/full", self.horizons)
-                cam = wme.forecast_from_stats(stats, f"{p}/cam", self.horizons, "camera")
-                out.update({f"{p}/{k}": v for k, v in full.items()})
-                out.update({f"{p}/cam/{k}": v for k, v in cam.items() if "step" not in k})
-            if has_traj:
-                res = wme.planning_from_stats(stats, f"{p}/plan", self.horizons, self.grid)
-                out.update({f"{p}/{k}": v for k, v in res.items()})
+        hs = self.horizons
+        for s in self.eval_settings:
+            for m, _, has_occ, has_traj in wme.METHODS:
+                p = f"{s.prefix}{m}"
+                if has_occ:
+                    full = wme.forecast_from_stats(stats, f"{p}/full", hs)
+                    cam = wme.forecast_from_stats(stats, f"{p}/cam", hs, "camera")
+                    out.update({f"{p}/{k}": v for k, v in full.items()})
+                    out.update({f"{p}/cam/{k}": v for k, v in cam.items() if "step" not in k})
+                if has_traj:
+                    res = wme.planning_from_stats(stats, f"{p}/plan", hs, self.grid)
+                    out.update({f"{p}/{k}": v for k, v in res.items()})
         return out
 
     def write_report(self, metrics: dict[str, float], run_dir: str) -> str | None:
         """Write ``world_model_eval.csv`` / ``.md`` into ``run_dir``; return the table text."""
         if not any(k.endswith("model/miou_avg") for k in metrics):
             return None
-        occ_root = self.cfg.stage.get("occ_root")
-        source = (
-            "inputs and targets: GT occupancy (3D-Occ setting)"
-            if not occ_root
-            else f"inputs: pseudo labels {occ_root}, targets: GT occupancy (Camera setting)"
-        )
         n = metrics.get("val/num_windows", metrics.get("num_windows", float("nan")))
         header = [
             f"World model evaluation: split {self.cfg.dataset.val_split!r} of "
             f"{self.cfg.dataset.name}, {int(n)} windows, history {self.settings.history}, "
-            f"future {self.settings.future}; {source}; grid {self.grid.name}",
+            f"future {self.settings.future}; grid {self.grid.name}",
+            setting_header(self.eval_settings, self.cfg.get("ckpt")),
             "Forecast: mIoU over classes 0..16, full volume (OccWorld protocol); IoU = occupied "
             "vs free; percent. Camera-mask values in CSV",
             "Planning: L2 at horizon (UniAD); mean-to-horizon in CSV. L2 in metres; Col = "
             "collision rate vs GT boxes at horizon, percent (vs GT occupancy in CSV)",
         ]
-        return wme.write_report(metrics, run_dir, self.horizons, header)
+        settings = [(s.label, s.prefix) for s in self.eval_settings]
+        return wme.write_report(metrics, run_dir, self.horizons, header, settings)
 
+    def on_eval_end(self, model: nn.Module, metrics: dict[str, float], run_dir: str) -> None:
+        """Pictures of the evaluation into ``run_dir``: BEV forecasts and planned trajectories."""
+        if self._val_set is None or len(self._val_set) == 0:
+            return
+        from renderworld.training.stages.world_model_pictures import write_pictures
 
-def _check_same_tokenizer(trained_cfg: Any, tokenizer_ckpt) -> None:
-    """Warn when ``tokenizer_ckpt`` is not the file the world model was trained on."""
-    trained_on = trained_cfg.stage.get("tokenizer_ckpt")
-    if trained_on and Path(str(trained_on)).resolve() != Path(str(tokenizer_ckpt)).resolve():
-        warnings.warn(
-            f"tokenizer_ckpt: {str(tokenizer_ckpt)!r} differs from the tokenizer the world "
-            f"model was trained on ({trained_on!r}); results are only valid if they hold the "
-            "same weights",
-            UserWarning,
-            stacklevel=3,
-        )
-
-
-def export_planner_bundle(
-    world_model_ckpt: str | os.PathLike,
-    tokenizer_ckpt: str | os.PathLike,
-    out_path: str | os.PathLike,
-) -> Path:
-    """Write a :mod:`renderworld.planning` bundle from a world-model and a tokenizer checkpoint.
-
-    Args:
-        world_model_ckpt: ``last.pt`` / ``best.pt`` of a ``world_model`` run.
-        tokenizer_ckpt: the ``tokenizer`` checkpoint that run was trained on.
-        out_path: bundle file to write (its folder must exist); load it with
-            ``renderworld.planning.load_planner(out_path)`` after importing this module (which
-            registers the tokenizer kind ``"scene_tokenizer"``).
-
-    Returns:
-        ``out_path``.
-
-    Raises:
-        CheckpointError: a checkpoint that is missing, of another stage, or does not fit.
-    """
-    from renderworld.training.checkpoint import check_state_dict_keys
-
-    ckpt = load_checkpoint(world_model_ckpt, expected_stage="world_model")
-    cfg = OmegaConf.create(ckpt["config"])
-    _check_same_tokenizer(cfg, tokenizer_ckpt)
-    tokenizer = load_tokenizer(tokenizer_ckpt, "cpu")
-    model = WorldModel(world_model_config(cfg, tokenizer.cfg))
-    check_state_dict_keys(model, ckpt["model"], source=f"checkpoint {str(world_model_ckpt)!r}")
-    model.load_state_dict(ckpt["model"], strict=True)
-    return save_planner_bundle(out_path, tokenizer, model)
+        write_pictures(self, model, self._val_set, Path(run_dir))

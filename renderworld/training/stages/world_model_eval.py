@@ -17,11 +17,7 @@ repeated).
 
 from __future__ import annotations
 
-import csv
-import io
-import math
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -32,6 +28,12 @@ from renderworld.constants import KEYFRAME_DT, NUM_OCC3D_CLASSES, GridSpec
 from renderworld.data import OccSequenceDataset
 from renderworld.metrics import FORECAST_HORIZONS_S, ForecastMetric, PlanningMetric
 from renderworld.training.stages.common import confusion_stats
+from renderworld.training.stages.world_model_report import (
+    METHODS,
+    REPORT_BASENAME,
+    report_tables,
+    write_report,
+)
 from renderworld.world import frame_poses_from_poses
 
 __all__ = [
@@ -53,16 +55,8 @@ __all__ = [
     "write_report",
 ]
 
-#: (metric prefix, table label, has an occupancy forecast, has a trajectory)
-METHODS: tuple[tuple[str, str, bool, bool], ...] = (
-    ("model", "model", True, True),
-    ("copy_paste", "Copy&Paste", True, False),
-    ("warp_cv", "CV-warp", True, False),
-    ("cv_traj", "CV-trajectory", False, True),
-)
 FORECASTERS = tuple(m[0] for m in METHODS if m[2])
 PLANNERS = tuple(m[0] for m in METHODS if m[3])
-REPORT_BASENAME = "world_model_eval"
 _COLL_KEYS = ("hit", "evaluated", "gt_skipped", "outside")
 
 
@@ -169,15 +163,19 @@ def forecast_to_stats(
     return torch.stack(steps), (~valid).sum().double()
 
 
-def empty_forecast_stats(steps: int, device: torch.device) -> dict[str, torch.Tensor]:
-    """Zero ``<method>/<full|cam>/confusion`` [S, 18, 18] and ``.../skipped`` [] counters."""
+def empty_forecast_stats(
+    steps: int, device: torch.device, prefix: str = ""
+) -> dict[str, torch.Tensor]:
+    """Zero ``<prefix><method>/<full|cam>/confusion`` [S, 18, 18] and ``.../skipped`` []."""
     out = {}
     for p in FORECASTERS:
         for region in ("full", "cam"):
-            out[f"{p}/{region}/confusion"] = torch.zeros(
+            out[f"{prefix}{p}/{region}/confusion"] = torch.zeros(
                 steps, NUM_OCC3D_CLASSES, NUM_OCC3D_CLASSES, dtype=torch.float64, device=device
             )
-            out[f"{p}/{region}/skipped"] = torch.zeros((), dtype=torch.float64, device=device)
+            out[f"{prefix}{p}/{region}/skipped"] = torch.zeros(
+                (), dtype=torch.float64, device=device
+            )
     return out
 
 
@@ -187,13 +185,17 @@ def add_forecast_stats(
     gt: torch.Tensor,
     mask_camera: torch.Tensor,
     valid: torch.Tensor,
+    prefix: str = "",
 ) -> None:
-    """Add each method's [B, S, X, Y, Z] forecast to its full-volume and camera-mask counts."""
+    """Add each method's [B, S, X, Y, Z] forecast to its full-volume and camera-mask counts.
+
+    Keys are ``<prefix><method>/...`` (see :func:`empty_forecast_stats`).
+    """
     for p, pred in forecasts.items():
         for region, mask in (("full", None), ("cam", mask_camera)):
             conf, skipped = forecast_to_stats(pred, gt, valid, mask)
             for name, value in (("confusion", conf), ("skipped", skipped)):
-                key = f"{p}/{region}/{name}"
+                key = f"{prefix}{p}/{region}/{name}"
                 stats[key] += value.to(stats[key].device)
 
 
@@ -301,104 +303,3 @@ def planning_from_stats(
         if isinstance(value, (int, float)) and name not in ("num_samples", "masked_steps"):
             out[name.replace("@", "_")] = float(value)
     return out
-
-
-# ------------------------------------------------------------------------ report
-def _columns(horizons_s: tuple[float, ...]) -> list[tuple[str, str, str, float]]:
-    """(header, metric suffix, csv column, scale) of the printed table."""
-    hs = [_hname(h) for h in horizons_s] + ["avg"]
-    cols = []
-    for label, metric, unit, scale in (
-        ("mIoU", "miou", "pct", 100.0),
-        ("IoU", "iou", "pct", 100.0),
-        ("L2", "l2_at_horizon", "m", 1.0),
-        ("Col", "collision_boxes_at_horizon", "pct", 100.0),
-    ):
-        for h in hs:
-            cols.append((f"{label} {h}", f"{metric}_{h}", f"{metric}_{h}_{unit}", scale))
-    return cols
-
-
-def _csv_columns(horizons_s: tuple[float, ...]) -> list[tuple[str, str, float]]:
-    """(csv column, metric suffix, scale): the table's columns plus the other conventions."""
-    hs = [_hname(h) for h in horizons_s] + ["avg"]
-    out = []
-    for metric, unit, scale in (
-        ("miou", "pct", 100.0),
-        ("iou", "pct", 100.0),
-        ("cam/miou", "pct", 100.0),
-        ("cam/iou", "pct", 100.0),
-        ("l2_at_horizon", "m", 1.0),
-        ("l2_mean_to_horizon", "m", 1.0),
-        ("collision_boxes_at_horizon", "pct", 100.0),
-        ("collision_boxes_mean_to_horizon", "pct", 100.0),
-        ("collision_occupancy_at_horizon", "pct", 100.0),
-        ("collision_occupancy_mean_to_horizon", "pct", 100.0),
-    ):
-        for h in hs:
-            out.append((f"{metric.replace('/', '_')}_{h}_{unit}", f"{metric}_{h}", scale))
-    for src in PlanningMetric.SOURCES:
-        for what in ("gt_skipped", "outside_grid"):
-            out.append((f"collision_{src}_{what}", f"collision_{src}_{what}", 1.0))
-    return out
-
-
-def _value(metrics: Mapping[str, float], prefix: str, suffix: str, scale: float) -> float | None:
-    key = f"{prefix}/{suffix}"
-    for k in (key, f"val/{key}"):
-        if k in metrics:
-            return float(metrics[k]) * scale
-    return None
-
-
-def _fmt(v: float | None, width: int) -> str:
-    if v is None:
-        return f"{'-':>{width}}"
-    if math.isnan(v):
-        return f"{'nan':>{width}}"
-    return f"{v:>{width}.2f}"
-
-
-def report_tables(
-    metrics: Mapping[str, float], horizons_s: tuple[float, ...], header: list[str]
-) -> tuple[str, str, str]:
-    """The evaluation table as (plain text, markdown, CSV).
-
-    Args:
-        metrics: the stage's metrics (``<method>/<name>``, optionally ``val/``-prefixed).
-        horizons_s: the reported horizons.
-        header: description lines (split, protocol) printed above the table.
-    """
-    cols = _columns(horizons_s)
-    width = max(9, *(len(c[0]) + 1 for c in cols))
-    lines = [f"# {h}" for h in header]
-    lines.append(f"{'method':<15}" + "".join(f"{c[0]:>{width}}" for c in cols))
-    md = [*(f"> {h}  " for h in header), ""]
-    md.append("| method | " + " | ".join(c[0] for c in cols) + " |")
-    md.append("|---|" + "---:|" * len(cols))
-    csv_cols = _csv_columns(horizons_s)
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(["method", *(c[0] for c in csv_cols)])
-    for prefix, label, _, _ in METHODS:
-        vals = [_value(metrics, prefix, c[1], c[3]) for c in cols]
-        lines.append(f"{label:<15}" + "".join(_fmt(v, width) for v in vals))
-        md.append(f"| {label} | " + " | ".join(_fmt(v, 0).strip() for v in vals) + " |")
-        row = [_value(metrics, prefix, c[1], c[2]) for c in csv_cols]
-        writer.writerow([label, *("" if v is None else repr(v) for v in row)])
-    return "\n".join(lines), "\n".join(md) + "\n", buf.getvalue()
-
-
-def write_report(
-    metrics: Mapping[str, float],
-    run_dir: str | Path,
-    horizons_s: tuple[float, ...],
-    header: list[str],
-) -> str:
-    """Write ``world_model_eval.csv`` and ``.md`` into ``run_dir``; return the text table."""
-    text, md, csv_text = report_tables(metrics, horizons_s, header)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / f"{REPORT_BASENAME}.md").write_text(md)
-    (run_dir / f"{REPORT_BASENAME}.csv").write_text(csv_text)
-    return text

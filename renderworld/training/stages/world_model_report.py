@@ -1,0 +1,189 @@
+"""The ``world_model`` evaluation table: one table, model and baselines, one or two settings.
+
+Rows are (setting, method): the "3D-Occ" setting (GT occupancy inputs, GT targets) and the
+"Camera" setting (Img2Occ pseudo-label inputs, GT targets), each with the model and the
+baselines computed on that setting's inputs. A setting's metrics are ``<prefix><method>/<name>``
+(optionally ``val/``-prefixed); the prefix is ``""`` for the run's own setting and ``"camera/"``
+for the Camera setting added by ``tools/eval.py ... pseudo_labels=DIR``.
+
+Printed table and markdown show the headline conventions (mIoU / IoU full volume, L2 at horizon,
+collision vs GT boxes at horizon); the CSV holds these and the others (camera-mask mIoU / IoU,
+mean-to-horizon L2, collision vs GT occupancy, skipped-GT and outside-grid counts). A value that
+does not apply to a method (a baseline without a planner, a planner without a forecast) is "–"
+in the text and markdown, explained by a legend line under the table, and empty in the CSV.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from renderworld.metrics import PlanningMetric
+
+__all__ = [
+    "METHODS",
+    "REPORT_BASENAME",
+    "SETTING_LABELS",
+    "NOT_APPLICABLE",
+    "report_tables",
+    "write_report",
+]
+
+#: (metric prefix, table label, has an occupancy forecast, has a trajectory)
+METHODS: tuple[tuple[str, str, bool, bool], ...] = (
+    ("model", "model", True, True),
+    ("copy_paste", "Copy&Paste", True, False),
+    ("warp_cv", "CV-warp", True, False),
+    ("cv_traj", "CV-trajectory", False, True),
+)
+REPORT_BASENAME = "world_model_eval"
+#: Table label of each setting.
+SETTING_LABELS = {"occ3d": "3D-Occ", "camera": "Camera"}
+#: How a value that does not apply is shown (text and markdown).
+NOT_APPLICABLE = "–"
+_LEGEND_NA = (
+    f"{NOT_APPLICABLE}: not applicable — Copy&Paste and CV-warp forecast occupancy but plan no "
+    "trajectory (no L2 / collision); CV-trajectory plans but forecasts no occupancy "
+    "(no mIoU / IoU)."
+)
+_LEGEND_NAN = (
+    "nan: undefined — no class present in GT or forecast at that horizon, or no window with a "
+    "valid future frame there."
+)
+
+
+def _hname(h: float) -> str:
+    return f"{h:g}s"
+
+
+def _columns(horizons_s: tuple[float, ...]) -> list[tuple[str, str, float]]:
+    """(header, metric suffix, scale) of the printed table."""
+    hs = [_hname(h) for h in horizons_s] + ["avg"]
+    cols = []
+    for label, metric, scale in (
+        ("mIoU", "miou", 100.0),
+        ("IoU", "iou", 100.0),
+        ("L2", "l2_at_horizon", 1.0),
+        ("Col", "collision_boxes_at_horizon", 100.0),
+    ):
+        cols += [(f"{label} {h}", f"{metric}_{h}", scale) for h in hs]
+    return cols
+
+
+def _csv_columns(horizons_s: tuple[float, ...]) -> list[tuple[str, str, float]]:
+    """(csv column, metric suffix, scale): the table's columns plus the other conventions."""
+    hs = [_hname(h) for h in horizons_s] + ["avg"]
+    out = []
+    for metric, unit, scale in (
+        ("miou", "pct", 100.0),
+        ("iou", "pct", 100.0),
+        ("cam/miou", "pct", 100.0),
+        ("cam/iou", "pct", 100.0),
+        ("l2_at_horizon", "m", 1.0),
+        ("l2_mean_to_horizon", "m", 1.0),
+        ("collision_boxes_at_horizon", "pct", 100.0),
+        ("collision_boxes_mean_to_horizon", "pct", 100.0),
+        ("collision_occupancy_at_horizon", "pct", 100.0),
+        ("collision_occupancy_mean_to_horizon", "pct", 100.0),
+    ):
+        for h in hs:
+            out.append((f"{metric.replace('/', '_')}_{h}_{unit}", f"{metric}_{h}", scale))
+    for src in PlanningMetric.SOURCES:
+        for what in ("gt_skipped", "outside_grid"):
+            out.append((f"collision_{src}_{what}", f"collision_{src}_{what}", 1.0))
+    return out
+
+
+def _value(metrics: Mapping[str, float], prefix: str, suffix: str, scale: float) -> float | None:
+    key = f"{prefix}/{suffix}"
+    for k in (key, f"val/{key}"):
+        if k in metrics:
+            return float(metrics[k]) * scale
+    return None
+
+
+def _fmt(v: float | None) -> str:
+    if v is None:
+        return NOT_APPLICABLE
+    if math.isnan(v):
+        return "nan"
+    return f"{v:.2f}"
+
+
+def _check_settings(settings: Sequence[tuple[str, str]]) -> None:
+    if not settings:
+        raise ValueError("settings: expected at least one (label, metric prefix) pair, got none")
+    for s in settings:
+        if not (isinstance(s, tuple) and len(s) == 2 and all(isinstance(x, str) for x in s)):
+            raise ValueError(f"settings: expected (label, metric prefix) string pairs, got {s!r}")
+
+
+def report_tables(
+    metrics: Mapping[str, float],
+    horizons_s: tuple[float, ...],
+    header: list[str],
+    settings: Sequence[tuple[str, str]] = (("3D-Occ", ""),),
+) -> tuple[str, str, str]:
+    """The evaluation table as (plain text, markdown, CSV).
+
+    Args:
+        metrics: the stage's metrics (``<prefix><method>/<name>``, optionally ``val/``-prefixed).
+        horizons_s: the reported horizons.
+        header: description lines (split, protocol) printed above the table.
+        settings: (table label, metric prefix) per setting, in row order.
+
+    Returns:
+        Text and markdown with a legend under the table for every "–" / "nan" shown; CSV with
+        columns ``setting, method, <metric>_<h>_<unit>...`` (not applicable: empty).
+    """
+    _check_settings(settings)
+    cols = _columns(horizons_s)
+    rows = []  # (setting label, method label, table values, csv values)
+    csv_cols = _csv_columns(horizons_s)
+    for label, prefix in settings:
+        for method, name, _, _ in METHODS:
+            key = f"{prefix}{method}"
+            vals = [_value(metrics, key, c[1], c[2]) for c in cols]
+            rows.append((label, name, vals, [_value(metrics, key, c[1], c[2]) for c in csv_cols]))
+    shown = [v for r in rows for v in r[2]]
+    legend = []
+    if any(v is None for v in shown):
+        legend.append(_LEGEND_NA)
+    if any(v is not None and math.isnan(v) for v in shown):
+        legend.append(_LEGEND_NAN)
+
+    width = max(9, *(len(c[0]) + 1 for c in cols))
+    lines = [f"# {h}" for h in header]
+    lines.append(f"{'setting':<9}{'method':<15}" + "".join(f"{c[0]:>{width}}" for c in cols))
+    md = [*(f"> {h}  " for h in header), ""]
+    md.append("| setting | method | " + " | ".join(c[0] for c in cols) + " |")
+    md.append("|---|---|" + "---:|" * len(cols))
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["setting", "method", *(c[0] for c in csv_cols)])
+    for label, name, vals, csv_vals in rows:
+        lines.append(f"{label:<9}{name:<15}" + "".join(f"{_fmt(v):>{width}}" for v in vals))
+        md.append(f"| {label} | {name} | " + " | ".join(_fmt(v) for v in vals) + " |")
+        writer.writerow([label, name, *("" if v is None else repr(v) for v in csv_vals)])
+    lines += [f"# {x}" for x in legend]
+    md += ["", *(f"{x}  " for x in legend)] if legend else []
+    return "\n".join(lines), "\n".join(md) + "\n", buf.getvalue()
+
+
+def write_report(
+    metrics: Mapping[str, float],
+    run_dir: str | Path,
+    horizons_s: tuple[float, ...],
+    header: list[str],
+    settings: Sequence[tuple[str, str]] = (("3D-Occ", ""),),
+) -> str:
+    """Write ``world_model_eval.csv`` and ``.md`` into ``run_dir``; return the text table."""
+    text, md, csv_text = report_tables(metrics, horizons_s, header, settings)
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / f"{REPORT_BASENAME}.md").write_text(md)
+    (run_dir / f"{REPORT_BASENAME}.csv").write_text(csv_text)
+    return text

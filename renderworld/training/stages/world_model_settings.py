@@ -1,0 +1,197 @@
+"""Which settings a ``world_model`` evaluation scores: "3D-Occ", "Camera", or both.
+
+* "3D-Occ": GT occupancy inputs, GT targets.
+* "Camera": Img2Occ pseudo-label inputs (``labels.npz`` in the Occ3D layout, written by
+  ``tools/export_occ.py``), GT targets.
+
+Training validates the run's own setting (``stage.occ_root``: null = 3D-Occ, a pseudo-label
+folder = Camera). ``tools/eval.py stage=world_model ckpt=A pseudo_labels=DIR [camera_ckpt=B]``
+scores both in one pass over the same windows: 3D-Occ with the model of ``ckpt`` and Camera with
+the model of ``camera_ckpt`` (the model trained on pseudo labels); without ``camera_ckpt`` the
+Camera rows run the ``ckpt`` model on pseudo-label inputs (a model trained on GT, tested on
+camera predictions). Metric keys: the run's own setting unprefixed (``model/miou_1s``), the added
+Camera setting under ``camera/`` (``camera/model/miou_1s``).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from renderworld.constants import FUTURE_FRAMES
+from renderworld.world import WorldModelConfig
+
+__all__ = [
+    "EvalSetting",
+    "eval_settings",
+    "setting_header",
+    "world_model_config",
+    "stage_settings",
+    "check_same_tokenizer",
+]
+
+# WorldModelConfig fields that come from the tokenizer and the stage, not from stage.model.
+_DERIVED = ("codebook_sizes", "token_grid", "history_frames", "future_frames")
+
+
+@dataclass(frozen=True)
+class EvalSetting:
+    """One evaluated setting.
+
+    Attributes:
+        key: ``"occ3d"`` or ``"camera"``.
+        label: table label, ``"3D-Occ"`` or ``"Camera"``.
+        prefix: metric-key prefix (``""`` or ``"camera/"``).
+        inputs: batch key of the history occupancy (``"occ"``, or ``"occ_target"`` = the GT
+            frames when the dataset's own source is pseudo labels).
+        source: name of the inputs' source (token-cache key): ``"gt"`` or the pseudo-label folder.
+        ckpt: checkpoint of the model of this setting; None = the evaluated model itself.
+    """
+
+    key: str
+    label: str
+    prefix: str
+    inputs: str
+    source: str
+    ckpt: str | None = None
+
+
+def _path_or_none(cfg: Any, key: str) -> str | None:
+    value = cfg.get(key)
+    if value in (None, ""):
+        return None
+    if not isinstance(value, (str, Path)):
+        raise ValueError(f"{key}: expected a path or null, got {value!r}")
+    return str(value)
+
+
+def eval_settings(cfg: Any) -> tuple[list[EvalSetting], str | None]:
+    """The settings of a run config and the pseudo-label folder its val windows read.
+
+    Returns:
+        (settings in table order, ``occ_root`` of the validation windows or None).
+
+    Raises:
+        ValueError: ``pseudo_labels`` together with ``stage.occ_root``, ``camera_ckpt`` without
+            ``pseudo_labels``, or a path that does not exist.
+    """
+    occ_root = _path_or_none(cfg.stage, "occ_root")
+    evaluating = cfg.get("task") == "eval"
+    pseudo = _path_or_none(cfg, "pseudo_labels") if evaluating else None
+    camera_ckpt = _path_or_none(cfg, "camera_ckpt") if evaluating else None
+    if camera_ckpt and not pseudo:
+        raise ValueError(
+            f"camera_ckpt: {camera_ckpt!r} needs pseudo_labels=<Img2Occ pseudo-label folder> "
+            "(the Camera setting's inputs)"
+        )
+    if pseudo and occ_root:
+        raise ValueError(
+            f"pseudo_labels: set together with stage.occ_root={occ_root!r}; pass one: "
+            "pseudo_labels=DIR (both settings) or stage.occ_root=DIR (Camera setting only)"
+        )
+    for key, path in (("pseudo_labels", pseudo), ("camera_ckpt", camera_ckpt)):
+        if path and not Path(path).exists():
+            raise ValueError(f"{key}: {path!r} does not exist")
+    if pseudo:
+        return [
+            EvalSetting("occ3d", "3D-Occ", "", "occ_target", "gt"),
+            EvalSetting("camera", "Camera", "camera/", "occ", pseudo, camera_ckpt),
+        ], pseudo
+    if occ_root:
+        return [EvalSetting("camera", "Camera", "", "occ", occ_root)], occ_root
+    return [EvalSetting("occ3d", "3D-Occ", "", "occ", "gt")], None
+
+
+def setting_header(settings: list[EvalSetting], ckpt: Any) -> str:
+    """One header line saying what each setting's inputs, targets and model are."""
+    parts = []
+    for s in settings:
+        if s.key == "occ3d":
+            parts.append("3D-Occ = GT occupancy inputs, GT targets")
+            continue
+        if s.ckpt:
+            model = f"model = {s.ckpt} (trained on pseudo labels)"
+        elif len(settings) > 1:
+            model = f"model = {ckpt} (the 3D-Occ checkpoint; no camera_ckpt given)"
+        else:
+            model = f"model = {ckpt}"
+        parts.append(f"Camera = Img2Occ pseudo-label inputs ({s.source}), GT targets, {model}")
+    return "Settings: " + "; ".join(parts)
+
+
+@dataclass(frozen=True)
+class StageSettings:
+    tokenizer_ckpt: str
+    history: int
+    future: int
+    lambda_l2: float
+    cache_tokens: bool
+
+
+def stage_settings(cfg: Any) -> StageSettings:
+    """The validated ``stage.*`` keys of a world-model run config (ValueError naming the key)."""
+    s = cfg.stage
+    history, future, lam = s.get("history"), s.get("future"), s.get("lambda_l2")
+    if not isinstance(history, int) or isinstance(history, bool) or history < 2:
+        raise ValueError(
+            f"stage.history: expected an int >= 2 (the constant-velocity baselines need one "
+            f"displacement), got {history!r}"
+        )
+    if not isinstance(future, int) or isinstance(future, bool) or not 1 <= future <= FUTURE_FRAMES:
+        raise ValueError(f"stage.future: expected an int in 1..{FUTURE_FRAMES}, got {future!r}")
+    if not isinstance(lam, (int, float)) or isinstance(lam, bool) or not lam >= 0:
+        raise ValueError(f"stage.lambda_l2: expected a number >= 0, got {lam!r}")
+    ckpt = s.get("tokenizer_ckpt")
+    if not ckpt:
+        raise ValueError(
+            "stage.tokenizer_ckpt: required; pass the tokenizer run's checkpoint, e.g. "
+            "stage.tokenizer_ckpt=outputs/train/tokenizer/<time>/checkpoints/best.pt"
+        )
+    return StageSettings(str(ckpt), history, future, float(lam), bool(s.get("cache_tokens", True)))
+
+
+def world_model_config(cfg: Any, tokenizer_cfg: Any) -> WorldModelConfig:
+    """The :class:`WorldModelConfig` of a run config on a tokenizer.
+
+    Args:
+        cfg: run config (``stage.model`` fields, ``stage.history``, ``stage.future``).
+        tokenizer_cfg: the tokenizer's ``TokenizerConfig`` (codebook sizes, latent grid).
+
+    Raises:
+        ValueError: unknown ``stage.model`` keys, or keys that the tokenizer / stage set.
+    """
+    st = stage_settings(cfg)
+    model = OmegaConf.to_container(cfg.stage.model, resolve=True) if cfg.stage.model else {}
+    known = {f.name for f in fields(WorldModelConfig)} - set(_DERIVED)
+    for key in model:
+        if key in _DERIVED:
+            raise ValueError(
+                f"stage.model.{key}: set by the tokenizer / stage.history / stage.future, "
+                "remove it from stage.model"
+            )
+        if key not in known:
+            raise ValueError(f"stage.model.{key}: unknown key; expected one of {sorted(known)}")
+    return WorldModelConfig(
+        codebook_sizes=tuple(tokenizer_cfg.codebook_sizes),
+        token_grid=tuple(tokenizer_cfg.latent_shape),
+        history_frames=st.history,
+        future_frames=st.future,
+        **model,
+    )
+
+
+def check_same_tokenizer(trained_cfg: Any, tokenizer_ckpt) -> None:
+    """Warn when ``tokenizer_ckpt`` is not the file the world model was trained on."""
+    trained_on = trained_cfg.stage.get("tokenizer_ckpt")
+    if trained_on and Path(str(trained_on)).resolve() != Path(str(tokenizer_ckpt)).resolve():
+        warnings.warn(
+            f"tokenizer_ckpt: {str(tokenizer_ckpt)!r} differs from the tokenizer the world "
+            f"model was trained on ({trained_on!r}); results are only valid if they hold the "
+            "same weights",
+            UserWarning,
+            stacklevel=3,
+        )

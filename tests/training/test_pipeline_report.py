@@ -1,0 +1,72 @@
+"""The main job's report.md from a pipeline output folder (no training: made-up step outputs)."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from renderworld.constants import FREE_ID, GRIDS
+from renderworld.training.figures import bev_forecast_figure
+from renderworld.training.pipeline import StepResult
+from renderworld.training.pipeline_main import _report
+from renderworld.training.stages.world_model_report import write_report
+
+
+def _outputs(out):
+    tok = {"val/miou": 0.6, "val/iou": 0.9, "val/cam/miou": 0.55, "val/cam/iou": float("nan")}
+    tok.update({f"val/iou_{c}": 0.5 for c in ("car", "bus", "terrain")})
+    (out / "tokenizer_eval").mkdir(parents=True)
+    (out / "tokenizer_eval" / "eval_metrics.json").write_text(json.dumps(tok))
+    (out / "img2occ_eval").mkdir()
+    (out / "img2occ_eval" / "occ3d_metrics.md").write_text(
+        "| id | class | IoU |\n|---:|---|---:|\n| 0 | others | – |\n| 4 | car | 4.59 |\n"
+    )
+    metrics = {}
+    for pre in ("", "camera/"):
+        for m in ("model", "copy_paste", "warp_cv"):
+            metrics.update({f"val/{pre}{m}/{k}_{h}": 0.1 for k in ("miou", "iou")
+                            for h in ("1s", "avg")})  # fmt: skip
+        for m in ("model", "cv_traj"):
+            metrics.update({f"val/{pre}{m}/{k}_{h}": 0.5 for h in ("1s", "avg")
+                            for k in ("l2_at_horizon", "collision_boxes_at_horizon")})  # fmt: skip
+    wm = out / "world_model_eval"
+    write_report(metrics, wm, (1.0,), ["one table"], (("3D-Occ", ""), ("Camera", "camera/")))
+    occ = np.full(GRIDS["coarse"].shape, FREE_ID, dtype=np.uint8)
+    for name in ("bev_forecast.png", "trajectories.png"):
+        bev_forecast_figure([("GT", [occ])], ["t=0"], GRIDS["coarse"], wm / name)
+
+
+def test_report_has_one_world_model_table_pictures_and_no_empty_cell(tmp_path):
+    out = tmp_path / "out"
+    _outputs(out)
+    cfg = OmegaConf.create({"data_root": str(tmp_path / "data"), "out": str(out)})
+    results = [StepResult("tokenizer", "skipped", 12.0, "f"), StepResult("img2occ", "ran", 3, "g")]
+    text = _report(cfg, out, results, 5.0).read_text()
+    assert "Not in this run yet" not in text
+    assert text.count("| setting | method |") == 1  # one table, both settings
+    assert "| Camera | CV-trajectory |" in text and "| 3D-Occ | model |" in text
+    for name in ("bev_forecast.png", "trajectories.png"):
+        assert f"(figures/{name})" in text and (out / "figures" / name).is_file()
+    # No empty cell; every dash / n/a is explained by a legend line.
+    for line in text.splitlines():
+        if line.startswith("|"):
+            assert all(c.strip() for c in line.strip().strip("|").split("|")), line
+    assert "–: not applicable" in text
+    assert "–: class absent from both GT and prediction" in text  # per-class tables
+    assert "n/a" in text and "n/a: " in text  # the tokenizer's NaN camera-mask IoU
+    assert not re.search(r"\|[ \t]*\|", text)
+
+
+def test_readme_pictures_are_checked_in_and_small():
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[2]
+    refs = re.findall(r"\]\((docs/figures/[^)]+\.png)\)", (repo / "README.md").read_text())
+    assert len(refs) >= 4
+    for ref in refs:
+        path = repo / ref
+        assert path.is_file(), ref
+        assert path.stat().st_size <= 160_000, (ref, path.stat().st_size)

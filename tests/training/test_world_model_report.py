@@ -1,0 +1,115 @@
+"""The world-model evaluation table (one table, both settings) and the eval-settings keys."""
+
+from __future__ import annotations
+
+import csv
+import io
+
+import pytest
+from omegaconf import OmegaConf
+
+from renderworld.training.stages.world_model_report import NOT_APPLICABLE, report_tables
+from renderworld.training.stages.world_model_settings import eval_settings, setting_header
+
+HS = (1.0, 2.0)
+
+
+def _metrics(prefix: str, offset: float) -> dict[str, float]:
+    out = {}
+    for m in ("model", "copy_paste", "warp_cv"):
+        for h in ("1s", "2s", "avg"):
+            out[f"val/{prefix}{m}/miou_{h}"] = 0.1 + offset
+            out[f"val/{prefix}{m}/iou_{h}"] = 0.5 + offset
+            out[f"val/{prefix}{m}/cam/miou_{h}"] = 0.2 + offset
+    for m in ("model", "cv_traj"):
+        for h in ("1s", "2s", "avg"):
+            out[f"val/{prefix}{m}/l2_at_horizon_{h}"] = 1.0 + offset
+            out[f"val/{prefix}{m}/l2_mean_to_horizon_{h}"] = 0.5 + offset
+            out[f"val/{prefix}{m}/collision_boxes_at_horizon_{h}"] = 0.0
+            out[f"val/{prefix}{m}/collision_occupancy_at_horizon_{h}"] = 0.01
+    return out
+
+
+BOTH = (("3D-Occ", ""), ("Camera", "camera/"))
+
+
+def test_one_table_has_a_row_per_setting_and_method():
+    metrics = {**_metrics("", 0.0), **_metrics("camera/", 0.05)}
+    text, md, csv_text = report_tables(metrics, HS, ["header line"], BOTH)
+    rows = list(csv.DictReader(io.StringIO(csv_text)))
+    assert [(r["setting"], r["method"]) for r in rows] == [
+        (s, m) for s in ("3D-Occ", "Camera")
+        for m in ("model", "Copy&Paste", "CV-warp", "CV-trajectory")
+    ]  # fmt: skip
+    cam_model = rows[4]
+    assert float(cam_model["miou_1s_pct"]) == pytest.approx(15.0)
+    assert float(cam_model["cam_miou_2s_pct"]) == pytest.approx(25.0)  # kept in the CSV
+    assert float(cam_model["l2_mean_to_horizon_2s_m"]) == pytest.approx(0.55)
+    assert float(cam_model["collision_occupancy_at_horizon_1s_pct"]) == pytest.approx(1.0)
+    assert rows[0]["miou_1s_pct"] != cam_model["miou_1s_pct"]
+    assert rows[3]["miou_1s_pct"] == "" and rows[1]["l2_at_horizon_1s_m"] == ""  # n/a: empty
+    table = [line for line in md.splitlines() if line.startswith("| ")]
+    assert table[0].startswith("| setting | method | mIoU 1s")
+    assert "| Camera | model | 15.00 |" in md
+    for line in table:  # no empty cell in the markdown table
+        cells = line.strip("|").split("|")
+        assert all(c.strip() for c in cells), line
+    assert f"{NOT_APPLICABLE}: not applicable" in md.split(table[-1])[1]  # legend under it
+    assert "Camera   CV-trajectory" in text and "not applicable" in text
+
+
+def test_legend_lines_only_for_what_is_shown():
+    metrics = {k: v for k, v in _metrics("", 0.0).items()}
+    metrics["val/model/miou_2s"] = float("nan")
+    _, md, _ = report_tables(metrics, HS, [], (("3D-Occ", ""),))
+    assert "nan: undefined" in md and "| nan |" in md
+    _, md, _ = report_tables(_metrics("", 0.0), HS, [])
+    assert "nan: undefined" not in md
+
+
+def test_report_tables_checks_settings():
+    with pytest.raises(ValueError, match="settings: expected at least one"):
+        report_tables({}, HS, [], ())
+    with pytest.raises(ValueError, match=r"settings: expected \(label, metric prefix\)"):
+        report_tables({}, HS, [], (("3D-Occ",),))
+
+
+def _cfg(**top):
+    stage = {"occ_root": top.pop("occ_root", None)}
+    return OmegaConf.create({"task": top.pop("task", "eval"), "stage": stage, **top})
+
+
+def test_eval_settings_default_and_both(tmp_path):
+    settings, root = eval_settings(_cfg())
+    assert [(s.label, s.prefix, s.inputs) for s in settings] == [("3D-Occ", "", "occ")]
+    assert root is None
+    ck = tmp_path / "cam.pt"
+    ck.write_bytes(b"x")
+    settings, root = eval_settings(_cfg(pseudo_labels=str(tmp_path), camera_ckpt=str(ck)))
+    assert root == str(tmp_path)
+    assert [(s.label, s.prefix, s.inputs, s.ckpt) for s in settings] == [
+        ("3D-Occ", "", "occ_target", None), ("Camera", "camera/", "occ", str(ck))
+    ]  # fmt: skip
+    assert "trained on pseudo labels" in setting_header(settings, "a.pt")
+    settings, _ = eval_settings(_cfg(pseudo_labels=str(tmp_path)))
+    assert settings[1].ckpt is None
+    assert "the 3D-Occ checkpoint; no camera_ckpt given" in setting_header(settings, "a.pt")
+    settings, root = eval_settings(_cfg(occ_root=str(tmp_path)))  # training's Camera setting
+    assert [s.label for s in settings] == ["Camera"] and root == str(tmp_path)
+    # Training ignores the eval-only keys.
+    settings, _ = eval_settings(_cfg(task="train", pseudo_labels="/nope"))
+    assert [s.label for s in settings] == ["3D-Occ"]
+
+
+@pytest.mark.parametrize(
+    ("top", "match"),
+    [
+        ({"camera_ckpt": "x.pt"}, r"camera_ckpt: 'x.pt' needs pseudo_labels="),
+        ({"pseudo_labels": "/p", "occ_root": "/q"}, r"pseudo_labels: set together with stage"),
+        ({"pseudo_labels": "/does/not/exist"}, r"pseudo_labels: '/does/not/exist' does not exist"),
+        ({"pseudo_labels": 3}, r"pseudo_labels: expected a path or null, got 3"),
+    ],
+)
+def test_eval_settings_errors_name_the_key(top, match):
+    with pytest.raises(ValueError, match=match):
+        eval_settings(_cfg(**top))
