@@ -269,6 +269,8 @@ def test_3d_supervised_depth_aware_stage_trains(converted, tmp_path):
             "trainer.log_every=1",
             "trainer.progress_bar=false",
             "trainer.tensorboard=false",
+            "trainer.monitor=val/cam/miou",
+            "trainer.monitor_mode=max",
         ]
     )
     threads = torch.get_num_threads()
