@@ -1,14 +1,14 @@
 """Img2Occ training-step benchmark: time and peak memory, coarse vs full Occ3D grid, pruning.
 
 One training step = ``model(batch)`` (encoder on C images, lifting, BEV head, rendering of
-``--views`` cameras) + ``model.loss`` + ``backward``, with depth-aware lifting of ``--depth-
-bins`` bins (default 40, as experiment=img2occ_mini; 0 = mean lifting). Configurations: grid
-coarse (50x50x4, 10k anchors) and occ3d (200x200x16, 640k anchors); pruning off (``prune_opacity
-= 0``: every Gaussian is rendered) and on (``prune_opacity = 1/255``, lossless) with a trained-
-like opacity field: the head's opacity bias puts the lowest ``--occupied-layers`` height layers
-at opacity ~0.9 and the rest at ~1e-4, i.e. the ground and what stands on it are solid and the
-air is clear, as in a trained model (Occ3D scenes are ~5-10 % occupied). Without that, every
-Gaussian starts at the initial opacity 0.1 and pruning at 1/255 removes nothing.
+``--views`` cameras) + ``model.loss`` + ``backward``, with depth-aware lifting of
+``--depth-bins`` bins (default 40, as experiment=img2occ_mini; 0 = mean lifting).
+Configurations: grid coarse (50x50x4, 10k anchors) and occ3d (200x200x16, 640k anchors); pruning
+off (``prune_opacity=0``: every Gaussian is rendered) and on (``prune_opacity=1/255``, lossless)
+with a trained-like opacity field: the head's opacity bias puts the lowest ``--occupied-layers``
+height layers at opacity ~0.9 and the rest at ~1e-4, i.e. the ground and what stands on it are
+solid and the air is clear, as in a trained model (Occ3D scenes are ~5-10 % occupied). Without
+that, every Gaussian starts at the initial opacity 0.1 and pruning at 1/255 removes nothing.
 
 Inputs: C = 6 cameras, images 256x704 (``--input``), LiDAR-like targets at ``--render``
 (random depth/labels on 40 % of pixels; the step's cost does not depend on their values),
