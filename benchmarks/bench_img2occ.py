@@ -1,13 +1,14 @@
 """Img2Occ training-step benchmark: time and peak memory, coarse vs full Occ3D grid, pruning.
 
 One training step = ``model(batch)`` (encoder on C images, lifting, BEV head, rendering of
-``--views`` cameras) + ``model.loss`` + ``backward``. Configurations: grid coarse (50x50x4,
-10k anchors) and occ3d (200x200x16, 640k anchors); pruning off (``prune_opacity = 0``: every
-Gaussian is rendered) and on (``prune_opacity = 1/255``, lossless) with a trained-like opacity
-field: the head's opacity bias puts the lowest ``--occupied-layers`` height layers at opacity
-~0.9 and the rest at ~1e-4, i.e. the ground and what stands on it are solid and the air is
-clear, as in a trained model (Occ3D scenes are ~5-10 % occupied). Without that, every
-Gaussian starts at the initial opacity 0.1 and pruning at 1/255 removes nothing.
+``--views`` cameras) + ``model.loss`` + ``backward``, with depth-aware lifting of
+``--depth-bins`` bins (default 40, as experiment=img2occ_mini; 0 = mean lifting).
+Configurations: grid coarse (50x50x4, 10k anchors) and occ3d (200x200x16, 640k anchors); pruning
+off (``prune_opacity=0``: every Gaussian is rendered) and on (``prune_opacity=1/255``, lossless)
+with a trained-like opacity field: the head's opacity bias puts the lowest ``--occupied-layers``
+height layers at opacity ~0.9 and the rest at ~1e-4, i.e. the ground and what stands on it are
+solid and the air is clear, as in a trained model (Occ3D scenes are ~5-10 % occupied). Without
+that, every Gaussian starts at the initial opacity 0.1 and pruning at 1/255 removes nothing.
 
 Inputs: C = 6 cameras, images 256x704 (``--input``), LiDAR-like targets at ``--render``
 (random depth/labels on 40 % of pixels; the step's cost does not depend on their values),
@@ -19,7 +20,7 @@ kernel on CPU when it builds, else the tiled torch backend); the backend used is
 
 Usage:
     PYTHONPATH=. python benchmarks/bench_img2occ.py [--grids coarse,occ3d] [--repeats 3]
-        [--backend auto] [--views 3] [--threads 2] [--device cpu]
+        [--backend auto] [--views 3] [--threads 2] [--device cpu] [--depth-bins 40]
 """
 
 from __future__ import annotations
@@ -88,6 +89,7 @@ def run_one(args) -> dict:
         views_per_step=args.views,
         prune_opacity=prune,
         render_backend=args.backend,
+        depth_bins=args.depth_bins,
     )
     model = Img2Occ(cfg).to(device)
     z = grid.shape[2]
@@ -148,6 +150,9 @@ def main() -> None:
     p.add_argument("--input", type=int, nargs=2, default=(256, 704))
     p.add_argument("--render", type=int, nargs=2, default=(128, 352))
     p.add_argument("--occupied-layers", type=int, default=0, help="0: 1/8 of the height")
+    p.add_argument(
+        "--depth-bins", type=int, default=40, help="depth-aware lifting bins (0: mean lifting)"
+    )
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", default="cpu")
     p.add_argument("--timeout", type=int, default=1800)
@@ -167,6 +172,7 @@ def main() -> None:
             cmd += ["--views", str(args.views), "--threads", str(args.threads)]
             cmd += ["--input", *map(str, args.input), "--render", *map(str, args.render)]
             cmd += ["--occupied-layers", str(layers), "--device", args.device]
+            cmd += ["--depth-bins", str(args.depth_bins)]
             env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
             try:
                 res = subprocess.run(
@@ -184,7 +190,8 @@ def main() -> None:
     print(
         f"\nImg2Occ training step (forward + loss + backward), 6 cameras at "
         f"{args.input[0]}x{args.input[1]}, {args.views} rendered at "
-        f"{args.render[0]}x{args.render[1]}, device {args.device}, {args.threads} threads"
+        f"{args.render[0]}x{args.render[1]}, device {args.device}, {args.threads} threads, "
+        f"depth bins {args.depth_bins}"
     )
     print(f"{'grid':8} {'anchors':>8} {'pruning':>8} {'rendered':>9} {'backend':>8} "
           f"{'step s':>8} {'peak MB':>9} {'vs unpruned':>12}")  # fmt: skip

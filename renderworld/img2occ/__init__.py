@@ -1,12 +1,19 @@
 """Img2Occ (paper §6.2.1): semantic Gaussians anchored in voxels, trained from 2-D labels."""
 
 from renderworld.img2occ.config import Img2OccConfig
+from renderworld.img2occ.depth_lift import (
+    DepthSemanticHead,
+    depth_bin_edges,
+    image_label_losses,
+    occupancy_3d_loss,
+)
 from renderworld.img2occ.encoder import ImageEncoder
 from renderworld.img2occ.export import export_occupancy
 from renderworld.img2occ.head import AnchorGaussians, GaussianHead
 from renderworld.img2occ.lifting import LiftResult, lift_features
 from renderworld.img2occ.losses import (
     IGNORE_LABEL,
+    balanced_class_weights,
     pearson_depth_loss,
     relative_depth_l1_loss,
     rendered_distribution,
@@ -26,6 +33,7 @@ from renderworld.img2occ.viz import colorize_semantics, draw_views
 __all__ = [
     "IGNORE_LABEL",
     "AnchorGaussians",
+    "DepthSemanticHead",
     "GaussianHead",
     "ImageEncoder",
     "Img2Occ",
@@ -34,14 +42,18 @@ __all__ = [
     "LiftResult",
     "RenderedViews",
     "ThresholdSearch",
+    "balanced_class_weights",
     "choose_threshold",
     "colorize_semantics",
     "confusion_matrix",
+    "depth_bin_edges",
     "draw_views",
     "export_occupancy",
     "geometry_iou_from_confusion",
+    "image_label_losses",
     "miou_from_confusion",
     "lift_features",
+    "occupancy_3d_loss",
     "pearson_depth_loss",
     "readout_occupancy",
     "relative_depth_l1_loss",

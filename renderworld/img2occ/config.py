@@ -74,6 +74,23 @@ class Img2OccConfig:
         occupancy_threshold: initial opacity threshold of the readout (``choose_threshold``
             replaces it; it is stored in the model's state).
         prob_eps: epsilon inside the log of the rendered class distribution.
+        depth_bins: D > 0 turns on depth-aware lifting: the image branch also predicts a
+            categorical depth distribution over D bins and class logits per feature pixel
+            (supervised by the LiDAR-projected 2-D depth / semantic maps), and each voxel
+            takes a camera's feature weighted by the predicted probability that the
+            camera's surface lies inside the voxel (``renderworld.img2occ.depth_lift``).
+            0: every voxel along a ray gets the same (mean) feature.
+        depth_range: (d_min, d_max) metres of camera z covered by the D equal-width bins.
+        lift_depth_weight: weight of the per-pixel depth-bin cross-entropy (needs depth_bins).
+        lift_semantic_weight: weight of the per-pixel class cross-entropy (needs depth_bins).
+        class_balance: p in [0, 1]: the semantic cross-entropies (rendered and per-pixel)
+            weigh each label by its frequency in the batch to the power -p (mean weight 1);
+            0 = unweighted (the paper).
+        supervision: "2d" (the paper: rendered semantics + depth vs LiDAR-projected 2-D
+            labels) or "3d" (an upper reference: voxel losses against Occ3D GT inside the
+            camera mask, nothing rendered while training).
+        occupancy_3d_weight: weight of the opacity BCE (occupied vs free) of "3d" supervision.
+        semantic_3d_weight: weight of the class cross-entropy of occupied voxels ("3d").
     """
 
     grid: GridSpec | str = "coarse"
@@ -102,6 +119,14 @@ class Img2OccConfig:
     render_backend: str = "auto"
     occupancy_threshold: float = 0.5
     prob_eps: float = 1e-6
+    depth_bins: int = 0
+    depth_range: tuple[float, float] = (1.0, 61.0)
+    lift_depth_weight: float = 1.0
+    lift_semantic_weight: float = 1.0
+    class_balance: float = 0.0
+    supervision: str = "2d"
+    occupancy_3d_weight: float = 1.0
+    semantic_3d_weight: float = 1.0
 
     def __post_init__(self) -> None:
         if isinstance(self.grid, str):
@@ -160,6 +185,29 @@ class Img2OccConfig:
             raise ValueError(f"near/far: expected 0 < near < far, got {self.near}, {self.far}")
         if not (self.lift_near > 0):
             raise ValueError(f"lift_near: expected > 0 metres, got {self.lift_near!r}")
+        if isinstance(self.depth_bins, bool) or not isinstance(self.depth_bins, int):
+            raise ValueError(f"depth_bins: expected an int >= 0, got {self.depth_bins!r}")
+        if self.depth_bins < 0 or self.depth_bins == 1:
+            raise ValueError(f"depth_bins: expected 0 (off) or >= 2, got {self.depth_bins!r}")
+        rng = tuple(float(v) for v in self.depth_range)
+        if len(rng) != 2 or not (0 < rng[0] < rng[1]):
+            raise ValueError(f"depth_range: expected 0 < d_min < d_max, got {self.depth_range!r}")
+        self.depth_range = rng
+        if not (0.0 <= float(self.class_balance) <= 1.0):
+            raise ValueError(
+                f"class_balance: expected a value in [0, 1], got {self.class_balance!r}"
+            )
+        if self.supervision not in ("2d", "3d"):
+            raise ValueError(f"supervision: expected '2d' or '3d', got {self.supervision!r}")
+        for name in (
+            "lift_depth_weight",
+            "lift_semantic_weight",
+            "occupancy_3d_weight",
+            "semantic_3d_weight",
+        ):
+            v = getattr(self, name)
+            if not (math.isfinite(float(v)) and float(v) >= 0):
+                raise ValueError(f"{name}: expected a finite weight >= 0, got {v!r}")
         if not (0 < self.prob_eps < 1e-2):
             raise ValueError(f"prob_eps: expected a value in (0, 0.01), got {self.prob_eps!r}")
 

@@ -69,7 +69,9 @@ class GaussianHead(nn.Module):
         edge = float(voxel.min())
         self.s_min = cfg.scale_range[0] * edge
         self.s_max = cfg.scale_range[1] * edge
-        c_in = (cfg.feature_channels + NUM_ENCODING_CHANNELS) * z
+        # Depth-aware lifting appends surface mass, occlusion and K class probabilities.
+        extra = 2 + NUM_SEMANTIC_CLASSES if cfg.depth_bins else 0
+        c_in = (cfg.feature_channels + NUM_ENCODING_CHANNELS + extra) * z
         hid = cfg.head_channels
         self.inp = nn.Sequential(nn.Conv2d(c_in, hid, 1, bias=False), _norm(hid), nn.ReLU())
         self.blocks = nn.Sequential(*[_ResBlock(hid) for _ in range(cfg.head_blocks)])
@@ -87,7 +89,7 @@ class GaussianHead(nn.Module):
 
         Args:
             voxel_features: [B, F, X, Y, Z] lifted features and encodings
-                (F = feature_channels + NUM_ENCODING_CHANNELS).
+                (F = feature_channels + NUM_ENCODING_CHANNELS, + 2 + K with depth_bins).
             centres: [V, 3] voxel centres, metres, ego frame.
 
         Returns:

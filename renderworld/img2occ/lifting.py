@@ -5,6 +5,12 @@ in front of it (camera z > ``near``) and lands inside the feature map. The voxel
 the average of the bilinearly sampled features over the cameras that see it (zeros and a
 count of 0 when none does). The mean viewing depth and direction of those cameras come along
 as the anchors' distance / view encoding (paper §6.2.1).
+
+Depth-aware variant (``depth_cdf`` given, LSS-style): each camera's feature is weighted by the
+predicted probability mass of its surface inside the voxel's depth interval
+``[z - radius, z + radius]`` (``renderworld.img2occ.depth_lift.interp_cdf``), and the mean over
+cameras of that mass, of ``CDF(z - radius)`` (probability that the ray stopped before the
+voxel: occluded) and of the mass-weighted class probabilities come out as ``extras``.
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from renderworld.geometry import invert_pose, project_points
+from renderworld.img2occ.depth_lift import interp_cdf
 
 __all__ = ["LiftResult", "lift_features"]
 
@@ -29,12 +36,16 @@ class LiftResult:
         depth: [B, V] mean camera-z depth of the voxel centre over those cameras, metres
             (0 if none).
         view_dir: [B, V, 3] mean unit direction camera→voxel in the ego frame (0 if none).
+        extras: depth-aware lifting only (else None): [B, 2 + K, V] means over the cameras
+            that see the voxel of the surface mass inside the voxel, the occlusion
+            probability and the mass-weighted class probabilities (0 if none).
     """
 
     features: torch.Tensor
     count: torch.Tensor
     depth: torch.Tensor
     view_dir: torch.Tensor
+    extras: torch.Tensor | None = None
 
 
 def lift_features(
@@ -43,6 +54,10 @@ def lift_features(
     intrinsics: torch.Tensor,
     centres: torch.Tensor,
     near: float = 0.1,
+    depth_cdf: torch.Tensor | None = None,
+    class_probs: torch.Tensor | None = None,
+    edges: torch.Tensor | None = None,
+    radius: float = 0.0,
 ) -> LiftResult:
     """Sample per-camera feature maps at the projections of voxel centres.
 
@@ -55,6 +70,11 @@ def lift_features(
         intrinsics: [B, C, 3, 3] intrinsics at the feature-map resolution (pixels).
         centres: [V, 3] voxel centres, metres, ego frame.
         near: a camera sees a point only when its camera z exceeds this (metres).
+        depth_cdf: optional [B, C, D + 1, h, w] per-pixel depth CDF at ``edges`` (turns on
+            the depth-aware lifting; needs ``class_probs``, ``edges`` and ``radius``).
+        class_probs: [B, C, K, h, w] per-pixel class probabilities.
+        edges: [D + 1] equal-width depth-bin edges, metres camera z.
+        radius: half the depth extent of a voxel along a ray, metres (> 0).
 
     Returns:
         :class:`LiftResult`.
@@ -68,6 +88,24 @@ def lift_features(
         raise ValueError(f"intrinsics: expected {(b, c, 3, 3)}, got {tuple(intrinsics.shape)}")
     if centres.ndim != 2 or centres.shape[1] != 3:
         raise ValueError(f"centres: expected [V, 3], got {tuple(centres.shape)}")
+    depth_aware = depth_cdf is not None
+    if depth_aware:
+        if edges is None or class_probs is None or not radius > 0:
+            raise ValueError("depth_cdf: needs class_probs, edges and a radius > 0 with it")
+        if depth_cdf.shape != (b, c, edges.numel(), h, w):
+            raise ValueError(
+                f"depth_cdf: expected {(b, c, edges.numel(), h, w)}, got {tuple(depth_cdf.shape)}"
+            )
+        if class_probs.ndim != 5 or class_probs.shape[:2] != (b, c):
+            raise ValueError(
+                f"class_probs: expected [{b}, {c}, K, {h}, {w}], got {tuple(class_probs.shape)}"
+            )
+        if class_probs.shape[3:] != (h, w):
+            raise ValueError(
+                f"class_probs: expected [{b}, {c}, K, {h}, {w}], got {tuple(class_probs.shape)}"
+            )
+        n_edges, k = edges.numel(), class_probs.shape[2]
+        extra_sum = features.new_zeros(b, 2 + k, centres.shape[0])
     v = centres.shape[0]
     dtype = features.dtype
     centres = centres.to(device=features.device, dtype=dtype)
@@ -86,14 +124,26 @@ def lift_features(
         uv, z, _ = project_points(pts, intrinsics[:, ci].to(dtype), near=near)
         seen = (z > near) & (uv >= 0).all(-1) & (uv < size).all(-1)  # [B, V]
         grid = (2.0 * uv / size - 1.0).clamp(-2.0, 2.0)  # invisible ones are masked anyway
+        maps = features[:, ci]
+        if depth_aware:
+            maps = torch.cat([maps, depth_cdf[:, ci].to(dtype), class_probs[:, ci].to(dtype)], 1)
         sample = F.grid_sample(
-            features[:, ci],
+            maps,
             grid[:, None],  # [B, 1, V, 2]
             mode="bilinear",
             padding_mode="border",
             align_corners=False,
-        )[:, :, 0]  # [B, D, V]
+        )[:, :, 0]  # [B, D, V] (+ D_bins + 1 + K)
         m = seen.to(dtype)
+        if depth_aware:
+            cdf = sample[:, d : d + n_edges]
+            before = interp_cdf(cdf, edges, z - radius)  # surface before the voxel
+            mass = (interp_cdf(cdf, edges, z + radius) - before).clamp_min(0.0) * m
+            probs = sample[:, d + n_edges :]
+            sample = sample[:, :d] * mass[:, None]
+            extra_sum = extra_sum + torch.cat(
+                [mass[:, None], (before * m)[:, None], probs * mass[:, None]], 1
+            )
         feat_sum = feat_sum + sample * m[:, None]
         count = count + m
         depth_sum = depth_sum + z * m
@@ -107,4 +157,5 @@ def lift_features(
         count=count,
         depth=depth_sum / denom,
         view_dir=dir_sum / denom[..., None],
+        extras=extra_sum / denom[:, None] if depth_aware else None,
     )

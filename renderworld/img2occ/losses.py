@@ -16,6 +16,7 @@ __all__ = [
     "pearson_depth_loss",
     "relative_depth_l1_loss",
     "rendered_distribution",
+    "balanced_class_weights",
 ]
 
 #: Pixels of the 2-D label maps with no LiDAR point.
@@ -46,11 +47,39 @@ def rendered_distribution(features: torch.Tensor, alpha: torch.Tensor) -> torch.
     return dist / dist.sum(-1, keepdim=True).clamp_min(1e-12)
 
 
+def balanced_class_weights(labels: torch.Tensor, power: float) -> torch.Tensor:
+    """Per-label weights ``frequency ** -power`` from the labels of one batch.
+
+    Frequencies count the labelled pixels (ids 0..``FREE_ID``; 255 ignored); the weights are
+    scaled so that their mean over those pixels is 1 (the loss scale is unchanged), and
+    absent labels get weight 1.
+
+    Args:
+        labels: [...] int64 ids 0..``FREE_ID`` or 255.
+        power: 0 gives all ones; 0.5 is inverse square-root frequency.
+
+    Returns:
+        [FREE_ID + 1] float32 weights.
+    """
+    if not (0.0 <= float(power) <= 1.0):
+        raise ValueError(f"power: expected a value in [0, 1], got {power!r}")
+    lab = labels.reshape(-1).long()
+    lab = lab[(lab >= 0) & (lab <= FREE_ID)]
+    counts = torch.bincount(lab, minlength=FREE_ID + 1).to(torch.float32)
+    total = counts.sum()
+    if power == 0 or total == 0:
+        return torch.ones(FREE_ID + 1, device=labels.device)
+    w = torch.where(counts > 0, (counts / total).clamp_min(1e-12) ** -float(power), 0.0)
+    w = w / ((w * counts).sum() / total)
+    return torch.where(counts > 0, w, torch.ones_like(w))
+
+
 def semantic_nll_loss(
     features: torch.Tensor,
     alpha: torch.Tensor,
     labels: torch.Tensor,
     eps: float = 1e-6,
+    class_weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Cross-entropy of rendered semantics against LiDAR-projected labels.
 
@@ -63,6 +92,8 @@ def semantic_nll_loss(
         alpha: [N, H, W] accumulated alpha.
         labels: [N, H, W] int64 Occ3D ids 0..16, ``FREE_ID`` (ray escaped) or 255 (no label).
         eps: added inside the log.
+        class_weights: optional [FREE_ID + 1] weight per label (e.g.
+            :func:`balanced_class_weights`); the mean is then weighted.
 
     Returns:
         Scalar mean NLL over labelled pixels; 0 (with a graph) when none is labelled.
@@ -89,6 +120,13 @@ def semantic_nll_loss(
     p = dist.gather(-1, target[..., None])[..., 0]
     nll = -torch.log(p + eps)
     m = valid.to(nll.dtype)
+    if class_weights is not None:
+        if class_weights.shape != (FREE_ID + 1,):
+            raise ValueError(
+                f"class_weights: expected [{FREE_ID + 1}], got {tuple(class_weights.shape)}"
+            )
+        m = m * class_weights.to(nll)[target]
+        return (nll * m).sum() / m.sum().clamp_min(1e-6)
     return (nll * m).sum() / m.sum().clamp_min(1.0)
 
 

@@ -20,10 +20,18 @@ from torch import nn
 from renderworld.constants import FREE_ID
 from renderworld.geometry import VoxelGrid, scale_intrinsics
 from renderworld.img2occ.config import Img2OccConfig
+from renderworld.img2occ.depth_lift import (
+    DepthSemanticHead,
+    depth_bin_edges,
+    depth_cdf,
+    image_label_losses,
+    occupancy_3d_loss,
+)
 from renderworld.img2occ.encoder import ImageEncoder
 from renderworld.img2occ.head import AnchorGaussians, GaussianHead
 from renderworld.img2occ.lifting import lift_features
 from renderworld.img2occ.losses import (
+    balanced_class_weights,
     pearson_depth_loss,
     relative_depth_l1_loss,
     semantic_nll_loss,
@@ -48,6 +56,8 @@ class Img2OccOutput:
         view_index: [B, Cr] int64 camera indices rendered per sample (None when not rendered).
         adj_views: renders of the adjacent-frame cameras ``adj_index`` (or None).
         adj_index: [B, Ca] int64 (or None).
+        image_logits: depth-aware lifting only: [B, C, D + K, h, w] per-pixel depth-bin and
+            class logits of the keyframe cameras (else None).
     """
 
     gaussians: AnchorGaussians
@@ -57,6 +67,7 @@ class Img2OccOutput:
     view_index: torch.Tensor | None = None
     adj_views: RenderedViews | None = None
     adj_index: torch.Tensor | None = None
+    image_logits: torch.Tensor | None = None
 
 
 def readout_occupancy(
@@ -99,6 +110,11 @@ class Img2Occ(nn.Module):
         self.render_fn = render_fn
         self.encoder = ImageEncoder(self.cfg)
         self.head = GaussianHead(self.cfg)
+        self.depth_head = None
+        if self.cfg.depth_bins:
+            self.depth_head = DepthSemanticHead(self.cfg.feature_channels, self.cfg.depth_bins)
+            edges = depth_bin_edges(self.cfg.depth_bins, self.cfg.depth_range).float()
+            self.register_buffer("depth_edges", edges, persistent=False)
         grid = VoxelGrid(self.cfg.grid)
         centres = torch.as_tensor(grid.centres(), dtype=torch.float32).view(-1, 3)
         self.register_buffer("centres", centres, persistent=False)
@@ -118,8 +134,9 @@ class Img2Occ(nn.Module):
         if missing:
             raise ValueError(f"batch: missing key(s) {missing}; got {sorted(batch)}")
 
-    def encode(self, batch: dict) -> tuple[AnchorGaussians, torch.Tensor]:
-        """Images → Gaussians and per-voxel camera visibility counts [B, V]."""
+    def encode(self, batch: dict) -> tuple[AnchorGaussians, torch.Tensor, torch.Tensor | None]:
+        """Images → Gaussians, per-voxel camera visibility counts [B, V] and the per-pixel
+        depth/class logits [B, C, D + K, h, w] of depth-aware lifting (None without)."""
         self._check_batch(batch, _KEY_INPUTS)
         images = batch["images"]
         h_in, w_in = self.cfg.input_size
@@ -133,7 +150,22 @@ class Img2Occ(nn.Module):
         feats = feats.view(b, c, *feats.shape[1:])
         stride = self.cfg.feature_stride
         k_feat = scale_intrinsics(batch["intrinsics"].to(feats.dtype), 1.0 / stride)
-        lift = lift_features(feats, batch["cam_to_ego"], k_feat, self.centres, self.cfg.lift_near)
+        image_logits, extra = None, {}
+        if self.depth_head is not None:
+            d = self.cfg.depth_bins
+            image_logits = self.depth_head(feats.flatten(0, 1))
+            image_logits = image_logits.view(b, c, *image_logits.shape[1:])
+            extra = {
+                "depth_cdf": depth_cdf(image_logits[:, :, :d].flatten(0, 1)).view(
+                    b, c, d + 1, *image_logits.shape[-2:]
+                ),
+                "class_probs": torch.softmax(image_logits[:, :, d:], dim=2),
+                "edges": self.depth_edges,
+                "radius": 0.5 * float(sum(self.cfg.grid.voxel_size)) / 3.0,
+            }
+        lift = lift_features(
+            feats, batch["cam_to_ego"], k_feat, self.centres, self.cfg.lift_near, **extra
+        )
         seen = (lift.count > 0).to(feats.dtype)
         enc = torch.cat(
             [
@@ -144,8 +176,9 @@ class Img2Occ(nn.Module):
             ],
             dim=1,
         )
-        vox = torch.cat([lift.features, enc], dim=1).view(b, -1, *self.cfg.grid.shape)
-        return self.head(vox, self.centres), lift.count
+        parts = [lift.features, enc] + ([lift.extras] if lift.extras is not None else [])
+        vox = torch.cat(parts, dim=1).view(b, -1, *self.cfg.grid.shape)
+        return self.head(vox, self.centres), lift.count, image_logits
 
     def _pick(self, b: int, c: int, k: int | None, device) -> torch.Tensor:
         if not self.training or k is None or k >= c:
@@ -161,21 +194,25 @@ class Img2Occ(nn.Module):
         )  # fmt: skip
 
     # ------------------------------------------------------------------ forward
-    def forward(self, batch: dict, render: bool = True) -> Img2OccOutput:
+    def forward(self, batch: dict, render: bool | None = None) -> Img2OccOutput:
         """Predict Gaussians and (optionally) render them into the cameras.
 
         Args:
             batch: Img2OccDataset items stacked on B: images [B, C, 3, H_in, W_in],
                 intrinsics [B, C, 3, 3], cam_to_ego [B, C, 4, 4], render_intrinsics
                 [B, C, 3, 3] (needed to render), ``adj_*`` for adjacent-frame views.
-            render: render into cameras (training); False for readout/export only.
+            render: render into cameras (training); False for readout/export only; None:
+                render unless training with ``supervision = "3d"`` (voxel losses only).
 
         Returns:
             :class:`Img2OccOutput`.
         """
-        g, count = self.encode(batch)
+        g, count, image_logits = self.encode(batch)
         b = count.shape[0]
         out = Img2OccOutput(g, count.view(b, *self.cfg.grid.shape), self.cfg.grid.shape)
+        out.image_logits = image_logits
+        if render is None:
+            render = not (self.training and self.cfg.supervision == "3d")
         if not render:
             return out
         self._check_batch(batch, ("render_intrinsics",))
@@ -200,7 +237,7 @@ class Img2Occ(nn.Module):
         return out
 
     # ------------------------------------------------------------------ losses
-    def _view_losses(self, views: RenderedViews, depth, semantics) -> tuple:
+    def _view_losses(self, views: RenderedViews, depth, semantics, weights=None) -> tuple:
         h, w = self.cfg.render_size
         if depth.shape[-2:] != (h, w) or semantics.shape[-2:] != (h, w):
             raise ValueError(
@@ -212,6 +249,7 @@ class Img2Occ(nn.Module):
             views.alpha.flatten(0, 1),
             semantics.flatten(0, 1).to(views.alpha.device),
             eps=self.cfg.prob_eps,
+            class_weights=weights,
         )
         rendered, target = views.depth.flatten(0, 1), depth.flatten(0, 1).to(views.depth)
         dep = pearson_depth_loss(rendered, target)
@@ -219,26 +257,68 @@ class Img2Occ(nn.Module):
         return sem, dep, l1
 
     def loss(self, batch: dict, output: Img2OccOutput) -> tuple[torch.Tensor, dict[str, float]]:
-        """Rendered-semantics NLL + Pearson depth loss (paper Eq. 6.7), plus adjacent frames.
+        """The training loss of ``cfg.supervision``, plus the depth-aware lifting's 2-D losses.
+
+        "2d" (the paper): rendered-semantics NLL + Pearson depth loss (Eq. 6.7) (+ the
+        optional relative-depth L1), plus adjacent frames. "3d" (upper reference): opacity
+        BCE + class CE of occupied voxels against Occ3D GT inside the camera mask. With
+        ``depth_bins`` both add the per-pixel depth-bin and class cross-entropies against
+        the 2-D LiDAR labels.
 
         Args:
             batch: as for ``forward``, with depth [B, C, H_r, W_r] (metres, 0 = no point)
                 and semantics [B, C, H_r, W_r] (int64, 255 = no label); ``adj_depth`` and
-                ``adj_semantics`` for adjacent views.
-            output: ``forward(batch)``'s result (rendered).
+                ``adj_semantics`` for adjacent views; "3d": occ [B, X, Y, Z] and
+                mask_camera [B, X, Y, Z].
+            output: ``forward(batch)``'s result (rendered for "2d").
 
         Returns:
             ``(total, logs)``: scalar loss with a graph and a dict of floats.
         """
+        self._check_batch(batch, _KEY_TARGETS)
+        cfg = self.cfg
+        weights = None
+        if cfg.class_balance > 0:
+            weights = balanced_class_weights(batch["semantics"], cfg.class_balance)
+        if cfg.supervision == "3d":
+            self._check_batch(batch, ("occ", "mask_camera"))
+            g = output.gaussians
+            bce, ce = occupancy_3d_loss(
+                g.opacities, g.logits, batch["occ"], batch["mask_camera"], cfg.prob_eps
+            )
+            total = cfg.occupancy_3d_weight * bce + cfg.semantic_3d_weight * ce
+            logs = {"loss_occ3d": float(bce.detach()), "loss_sem3d": float(ce.detach())}
+        else:
+            total, logs = self._loss_2d(batch, output, weights)
+        if output.image_logits is not None:
+            k_feat = scale_intrinsics(
+                batch["intrinsics"].to(output.image_logits.dtype), 1.0 / cfg.feature_stride
+            )
+            dce, sce = image_label_losses(
+                output.image_logits,
+                k_feat,
+                batch["render_intrinsics"],
+                batch["depth"],
+                batch["semantics"],
+                self.depth_edges,
+                weights,
+            )
+            total = total + cfg.lift_depth_weight * dce + cfg.lift_semantic_weight * sce
+            logs.update(loss_pixel_depth=float(dce.detach()), loss_pixel_sem=float(sce.detach()))
+        logs["loss"] = float(total.detach())
+        logs["mean_opacity"] = float(output.gaussians.opacities.detach().mean())
+        return total, logs
+
+    def _loss_2d(self, batch: dict, output: Img2OccOutput, weights) -> tuple[torch.Tensor, dict]:
         if output.views is None:
             raise ValueError("output: has no rendered views; call forward(batch, render=True)")
-        self._check_batch(batch, _KEY_TARGETS)
         cfg = self.cfg
         idx = output.view_index
         sem, dep, l1 = self._view_losses(
             output.views,
             _gather_views(batch["depth"], idx),
             _gather_views(batch["semantics"], idx),
+            weights,
         )
         total = cfg.semantic_weight * sem + cfg.depth_weight * dep + cfg.depth_l1_weight * l1
         logs = {
@@ -252,14 +332,13 @@ class Img2Occ(nn.Module):
                 output.adj_views,
                 _gather_views(batch["adj_depth"], output.adj_index),
                 _gather_views(batch["adj_semantics"], output.adj_index),
+                weights,
             )
             total = total + cfg.adjacent_weight * (
                 cfg.semantic_weight * a_sem + cfg.depth_weight * a_dep + cfg.depth_l1_weight * a_l1
             )
             logs.update(loss_adj_sem=float(a_sem.detach()), loss_adj_depth=float(a_dep.detach()))
-        logs["loss"] = float(total.detach())
         logs["gaussians_rendered"] = float(output.views.num_rendered.float().mean())
-        logs["mean_opacity"] = float(output.gaussians.opacities.detach().mean())
         return total, logs
 
     # ------------------------------------------------------------------ readout

@@ -101,6 +101,13 @@ def test_stage_config_composes_and_validates(converted, tmp_path):
     assert mini.stage.model.depth_l1_weight > 0 and mini.trainer.max_minutes == 12
     assert mini.trainer.monitor == "val/cam/miou" and mini.grid.name == "coarse"
     img2occ_config(mini)  # sizes satisfy the model's divisibility rule
+    # The 3-D GT upper reference is the same network and budget: only the supervision differs.
+    ref = compose_cfg(["experiment=img2occ_mini_3dgt", f"run_dir={tmp_path}"])
+    ref_model, mini_model = img2occ_config(ref), img2occ_config(mini)
+    assert ref_model.supervision == "3d" and mini_model.supervision == "2d"
+    assert mini_model.depth_bins > 0
+    assert ref_model == type(ref_model)(**{**vars(mini_model), "supervision": "3d"})
+    assert ref.trainer == mini.trainer and ref.optimizer == mini.optimizer
     bad = compose_cfg(
         [*stage_overrides(root, infos), "+stage.model.colour=1", f"run_dir={tmp_path}"]
     )
@@ -245,3 +252,34 @@ def test_export_refuses_another_stage_checkpoint(converted, tmp_path):
     assert proc.returncode != 0
     assert "expected stage 'img2occ'" in proc.stdout + proc.stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_3d_supervised_depth_aware_stage_trains(converted, tmp_path):
+    """supervision=3d (the upper reference) with depth-aware lifting through the stage."""
+    root, infos = converted
+    cfg = compose_cfg(
+        [
+            *stage_overrides(root, infos),
+            f"run_dir={tmp_path}",
+            "stage.model.supervision=3d",
+            "stage.model.depth_bins=8",
+            "trainer.max_steps=2",
+            "trainer.val_every=2",
+            "trainer.ckpt_every=2",
+            "trainer.log_every=1",
+            "trainer.progress_bar=false",
+            "trainer.tensorboard=false",
+            "trainer.monitor=val/cam/miou",
+            "trainer.monitor_mode=max",
+        ]
+    )
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        torch.manual_seed(0)
+        metrics = train(cfg)
+    finally:
+        torch.set_num_threads(threads)
+    assert math.isfinite(metrics["train/loss"]) and math.isfinite(metrics["val/cam/iou"])
+    model, _ = load_img2occ(tmp_path / "checkpoints" / "last.pt")
+    assert model.cfg.supervision == "3d" and model.cfg.depth_bins == 8

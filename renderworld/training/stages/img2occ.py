@@ -2,7 +2,10 @@
 
 Training: ``Img2OccDataset`` keyframes of the converter's train split (plus, with
 ``stage.adjacent_frames = k``, the k previous / next keyframes' cameras as label-only views);
-loss = the model's rendered-semantics NLL + Pearson depth (+ the optional relative-depth L1).
+loss = the model's rendered-semantics NLL + Pearson depth (+ the optional relative-depth L1, + the
+depth-aware lifting's per-pixel depth-bin / class CE against the 2-D labels with
+``stage.model.depth_bins > 0``); ``stage.model.supervision = 3d`` trains the same network on
+Occ3D GT voxels instead (the upper reference, ``experiment=img2occ_mini_3dgt``).
 
 Evaluation, Occ3D protocol (DESIGN.md §4): the readout (opacity > the model's stored threshold,
 class = argmax) is compared with the Occ3D ground truth on the run's grid; 18x18 confusions are
