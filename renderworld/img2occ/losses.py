@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from renderworld.constants import FREE_ID, NUM_SEMANTIC_CLASSES
+from renderworld.constants import FREE_ID, IGNORE_LABEL, NUM_SEMANTIC_CLASSES
 
 __all__ = [
     "IGNORE_LABEL",
@@ -19,8 +19,6 @@ __all__ = [
     "balanced_class_weights",
 ]
 
-#: Pixels of the 2-D label maps with no LiDAR point.
-IGNORE_LABEL = 255
 # Per-pixel variance floor (m^2) in the correlation's denominator: bounds the gradient when
 # the rendered depth is (nearly) constant; negligible next to real depth variances.
 _VAR_FLOOR = 1e-6
