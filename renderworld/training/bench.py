@@ -263,6 +263,19 @@ def _budget(budget: Any, where: str) -> tuple[str, ...]:
     return tuple(out)
 
 
+def _point_fields(point: BenchPoint, infer_frames: int) -> dict[str, Any]:
+    """What defines a point's measurement: written into its spec and hashed into its fingerprint."""
+    return {
+        "stage": point.stage,
+        "knob": point.knob,
+        "value": point.value,
+        "experiment": point.experiment,
+        "overrides": list(point.overrides),
+        "eval_overrides": list(point.eval_overrides),
+        "infer_frames": int(infer_frames),
+    }
+
+
 def point_fingerprint(point: BenchPoint, infer_frames: int) -> str:
     """sha256 (16 hex) of everything that determines a point's result.
 
@@ -275,18 +288,7 @@ def point_fingerprint(point: BenchPoint, infer_frames: int) -> str:
         st = p.stat() if p.is_file() else None
         ups.append([str(p.resolve()), st.st_size if st else None, st.st_mtime_ns if st else None])
     blob = json.dumps(
-        {
-            "stage": point.stage,
-            "knob": point.knob,
-            "value": point.value,
-            "experiment": point.experiment,
-            "overrides": list(point.overrides),
-            "eval_overrides": list(point.eval_overrides),
-            "infer_frames": int(infer_frames),
-            "upstream": ups,
-            "version": 1,
-        },
-        sort_keys=True,
+        {**_point_fields(point, infer_frames), "upstream": ups, "version": 1}, sort_keys=True
     )
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -305,13 +307,7 @@ def run_point(
         shutil.rmtree(point_dir)
     point_dir.mkdir(parents=True)
     spec = {
-        "stage": point.stage,
-        "knob": point.knob,
-        "value": point.value,
-        "experiment": point.experiment,
-        "overrides": list(point.overrides),
-        "eval_overrides": list(point.eval_overrides),
-        "infer_frames": int(infer_frames),
+        **_point_fields(point, infer_frames),
         "config_dir": str((repo / "configs").resolve()),
         "point_dir": str(point_dir.resolve()),
     }
