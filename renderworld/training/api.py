@@ -103,7 +103,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
 
 #: Top-level eval keys read by the world_model stage only (configs/eval.yaml).
-_WORLD_MODEL_EVAL_KEYS = ("pseudo_labels", "camera_ckpt")
+_WORLD_MODEL_EVAL_KEYS = ("pseudo_labels", "camera_ckpt", "camera_tokenizer_ckpt")
 
 
 def evaluate(cfg: DictConfig) -> dict[str, float]:

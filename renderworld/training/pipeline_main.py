@@ -163,11 +163,21 @@ def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
             "world_model_mini", (*common, *tok), out, ("tokenizer",), wm_inputs, extra,
             evaluate=False,
         )  # fmt: skip
+        # Camera setting (paper): its own tokenizer, trained on the pseudo labels; the world
+        # model_eval step scores it in the Camera rows (camera_tokenizer_ckpt).
+        cam_tok = out / "tokenizer_camera" / "checkpoints" / "best.pt"
+        steps += _train_and_eval(
+            "tokenizer_camera",
+            ("train the AM-VAE tokenizer on Img2Occ pseudo labels (Camera setting)", ""),
+            "tokenizer_mini", (*common, f"stage.occ_root={pseudo}"), out, ("pseudo_labels",),
+            (pkg / "tokenizer", *configs("tokenizer", "tokenizer_mini")), extra, evaluate=False,
+        )  # fmt: skip
         steps += _train_and_eval(
             "world_model_camera",
             ("train the world model on Img2Occ pseudo labels (Camera setting)", ""),
-            "world_model_mini", (*common, *tok, f"stage.occ_root={pseudo}"), out,
-            ("tokenizer", "pseudo_labels"), wm_inputs, extra, evaluate=False,
+            "world_model_mini",
+            (*common, f"stage.tokenizer_ckpt={cam_tok}", f"stage.occ_root={pseudo}"), out,
+            ("tokenizer_camera", "pseudo_labels"), wm_inputs, extra, evaluate=False,
         )  # fmt: skip
         # One evaluation, one table: both settings, model and baselines (issue 9 item 4).
         steps.append(
@@ -183,10 +193,16 @@ def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
                     f"ckpt={out / 'world_model' / 'checkpoints' / 'best.pt'}",
                     f"pseudo_labels={pseudo}",
                     f"camera_ckpt={out / 'world_model_camera' / 'checkpoints' / 'best.pt'}",
+                    f"camera_tokenizer_ckpt={cam_tok}",
                     f"run_dir={out / 'world_model_eval'}",
                 ),  # fmt: skip
                 out / "world_model_eval",
-                depends_on=("world_model", "world_model_camera", "pseudo_labels"),
+                depends_on=(
+                    "world_model",
+                    "tokenizer_camera",
+                    "world_model_camera",
+                    "pseudo_labels",
+                ),  # fmt: skip
             )
         )
     return steps
@@ -304,7 +320,8 @@ def _report(cfg: Any, out: Path, results, seconds: float) -> Path:
             )
         )
     figures = []
-    for run in ("img2occ", "tokenizer", "world_model", "world_model_camera"):
+    runs = ("img2occ", "tokenizer", "tokenizer_camera", "world_model", "world_model_camera")
+    for run in runs:
         png = plot_training_curves(
             out / run / "metrics.csv", out / "figures" / f"curves_{run}.png",
             keys=("train/loss", "val/"),

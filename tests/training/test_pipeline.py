@@ -100,9 +100,31 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
     # One world-model evaluation after both trainings: one table with both settings.
     wm = steps[names.index("world_model_eval")]
     assert names.index("world_model_eval") > names.index("world_model_camera")
-    assert set(wm.depends_on) == {"world_model", "world_model_camera", "pseudo_labels"}
+    assert set(wm.depends_on) == {
+        "world_model", "tokenizer_camera", "world_model_camera", "pseudo_labels"
+    }  # fmt: skip
+    out = tmp_path / "out"
     args = dict(a.split("=", 1) for a in wm.command[2:])
-    assert args["pseudo_labels"] == str(tmp_path / "out" / "pseudo_labels")
+    assert args["pseudo_labels"] == str(out / "pseudo_labels")
     assert args["camera_ckpt"].endswith("world_model_camera/checkpoints/best.pt")
     assert args["ckpt"].endswith("world_model/checkpoints/best.pt")
+    assert args["stage.tokenizer_ckpt"] == str(out / "tokenizer" / "checkpoints" / "best.pt")
+    cam_tok = str(out / "tokenizer_camera" / "checkpoints" / "best.pt")
+    assert args["camera_tokenizer_ckpt"] == cam_tok
     assert "world_model_camera_eval" not in names
+    # The Camera setting's own tokenizer: trained on the pseudo labels, read by its world model.
+    tc = steps[names.index("tokenizer_camera")]
+    assert names.index("pseudo_labels") < names.index("tokenizer_camera")
+    assert names.index("tokenizer_camera") < names.index("world_model_camera")
+    assert set(tc.depends_on) == {"pseudo_labels"}
+    targs = dict(a.split("=", 1) for a in tc.command[2:])
+    assert targs["experiment"] == "tokenizer_mini"
+    assert targs["stage.occ_root"] == str(out / "pseudo_labels")
+    assert "tokenizer_camera_eval" not in names
+    wmc = steps[names.index("world_model_camera")]
+    assert set(wmc.depends_on) == {"tokenizer_camera", "pseudo_labels"}
+    cargs = dict(a.split("=", 1) for a in wmc.command[2:])
+    assert cargs["stage.tokenizer_ckpt"] == cam_tok
+    assert cargs["stage.occ_root"] == str(out / "pseudo_labels")
+    gt = dict(a.split("=", 1) for a in steps[names.index("world_model")].command[2:])
+    assert gt["stage.tokenizer_ckpt"] == str(out / "tokenizer" / "checkpoints" / "best.pt")

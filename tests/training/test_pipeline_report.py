@@ -60,6 +60,22 @@ def test_report_has_one_world_model_table_pictures_and_no_empty_cell(tmp_path):
     assert not re.search(r"\|[ \t]*\|", text)
 
 
+def test_report_plots_the_curves_of_every_training_run(tmp_path):
+    out = tmp_path / "out"
+    _outputs(out)
+    runs = ("img2occ", "tokenizer", "tokenizer_camera", "world_model", "world_model_camera")
+    for run in runs:
+        (out / run).mkdir()
+        rows = [f"{s},0,train/loss,{1.0 / (s + 1)}" for s in range(3)]
+        (out / run / "metrics.csv").write_text("\n".join(["step,epoch,key,value", *rows]) + "\n")
+    cfg = OmegaConf.create({"data_root": str(tmp_path / "data"), "out": str(out)})
+    text = _report(cfg, out, [StepResult("tokenizer_camera", "ran", 1.0, "f")], 1.0).read_text()
+    for run in runs:
+        assert f"![{run} training curves](figures/curves_{run}.png)" in text
+        assert (out / "figures" / f"curves_{run}.png").is_file()
+    assert "| tokenizer_camera | ran |" in text
+
+
 def test_readme_pictures_are_checked_in_and_small():
     from pathlib import Path
 

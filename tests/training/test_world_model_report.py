@@ -90,10 +90,17 @@ def test_eval_settings_default_and_both(tmp_path):
     assert [(s.label, s.prefix, s.inputs, s.ckpt) for s in settings] == [
         ("3D-Occ", "", "occ_target", None), ("Camera", "camera/", "occ", str(ck))
     ]  # fmt: skip
-    assert "trained on pseudo labels" in setting_header(settings, "a.pt")
+    assert "trained on pseudo labels" in setting_header(settings, "a.pt", "t.pt")
     settings, _ = eval_settings(_cfg(pseudo_labels=str(tmp_path)))
     assert settings[1].ckpt is None
-    assert "the 3D-Occ checkpoint; no camera_ckpt given" in setting_header(settings, "a.pt")
+    header = setting_header(settings, "a.pt", "t.pt")
+    assert "the 3D-Occ checkpoint; no camera_ckpt given" in header
+    assert "GT targets, tokenizer = t.pt; Camera" in header
+    assert header.endswith("tokenizer = t.pt (the 3D-Occ tokenizer; no camera_tokenizer_ckpt)")
+    settings, _ = eval_settings(_cfg(pseudo_labels=str(tmp_path), camera_tokenizer_ckpt=str(ck)))
+    assert settings[0].tokenizer is None and settings[1].tokenizer == str(ck)
+    header = setting_header(settings, "a.pt", "t.pt")
+    assert header.endswith(f"tokenizer = {ck} (camera_tokenizer_ckpt)")
     settings, root = eval_settings(_cfg(occ_root=str(tmp_path)))  # training's Camera setting
     assert [s.label for s in settings] == ["Camera"] and root == str(tmp_path)
     # Training ignores the eval-only keys.
@@ -105,6 +112,7 @@ def test_eval_settings_default_and_both(tmp_path):
     ("top", "match"),
     [
         ({"camera_ckpt": "x.pt"}, r"camera_ckpt: 'x.pt' needs pseudo_labels="),
+        ({"camera_tokenizer_ckpt": "t.pt"}, r"camera_tokenizer_ckpt: 't.pt' needs pseudo_labels="),
         ({"pseudo_labels": "/p", "occ_root": "/q"}, r"pseudo_labels: set together with stage"),
         ({"pseudo_labels": "/does/not/exist"}, r"pseudo_labels: '/does/not/exist' does not exist"),
         ({"pseudo_labels": 3}, r"pseudo_labels: expected a path or null, got 3"),

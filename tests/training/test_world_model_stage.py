@@ -458,3 +458,80 @@ def test_other_stages_reject_the_world_model_eval_keys(converted, tokenizer_ckpt
                        f"run_dir={tmp_path}", f"pseudo_labels={tmp_path}"], "eval")  # fmt: skip
     with pytest.raises(ValueError, match=r"pseudo_labels: only stage=world_model reads it"):
         evaluate(cfg)
+
+
+@pytest.fixture(scope="module")
+def other_tokenizer_ckpt(converted, tmp_path_factory):
+    """A second tiny tokenizer with the same codebooks and latent grid, other weights (seed 1)."""
+    run = tmp_path_factory.mktemp("tok2") / "run"
+    cfg = compose_cfg([
+        "stage=tokenizer", *_data(converted), f"run_dir={run}", *QUIET, "seed=1",
+        "trainer.max_steps=2", "trainer.batch_size=2", "trainer.val_every=0",
+        "trainer.monitor=val/miou", "trainer.monitor_mode=max",
+        "stage.model.latent_channels=8", "stage.model.codebook_size=32",
+        "stage.model.base_channels=8", "stage.model.num_res_blocks=1",
+        "stage.model.attention=false",
+    ])  # fmt: skip
+    train(cfg)
+    return run / "checkpoints" / "last.pt"
+
+
+def test_token_cache_separates_tokenizers(wm_overrides, other_tokenizer_ckpt, tmp_path):
+    stage, _, train_set, _ = _stage_and_model(wm_overrides, tmp_path)
+    batch = next(iter(DataLoader(train_set, batch_size=2)))
+    cpu = torch.device("cpu")
+    main = stage.window_tokens(batch, HISTORY, cpu)
+    other = stage.window_tokens(batch, HISTORY, cpu, tokenizer=str(other_tokenizer_ckpt))
+    tok2 = stage.tokenizer_of(str(other_tokenizer_ckpt))
+    direct = tok2.encode(batch["occ"][:, :HISTORY].flatten(0, 1)).indices.view(other.shape)
+    assert torch.equal(other, direct), "same source and samples, other tokenizer: re-encoded"
+    assert not torch.equal(main, other)
+    assert torch.equal(stage.window_tokens(batch, HISTORY, cpu), main)
+
+
+def test_camera_tokenizer_changes_only_the_camera_rows(
+    trained, wm_overrides, converted, tokenizer_ckpt, other_tokenizer_ckpt, tmp_path
+):
+    run, _ = trained
+    ckpt = run / "checkpoints" / "last.pt"
+    pseudo = _pseudo_labels(converted, tmp_path / "pseudo", free=False)
+    base = [*wm_overrides, f"ckpt={ckpt}", f"pseudo_labels={pseudo}", f"camera_ckpt={ckpt}"]
+    today = evaluate(compose_cfg([*base, f"run_dir={tmp_path / 'a'}"], "eval"))
+    # The 3D-Occ tokenizer passed explicitly: today's results, key for key.
+    same = evaluate(compose_cfg([*base, f"run_dir={tmp_path / 'b'}",
+                                 f"camera_tokenizer_ckpt={tokenizer_ckpt}"], "eval"))  # fmt: skip
+    assert same.keys() == today.keys()
+    for k, v in today.items():
+        assert same[k] == pytest.approx(v, rel=1e-12, nan_ok=True), k
+    # Another tokenizer: the Camera model rows change, the 3D-Occ rows and the Camera
+    # baselines (no tokenizer) do not; the model was trained on the first tokenizer: a warning.
+    with pytest.warns(UserWarning, match=r"camera_tokenizer_ckpt: .* differs from the tokenizer"):
+        other_tok = f"camera_tokenizer_ckpt={other_tokenizer_ckpt}"
+        other = evaluate(compose_cfg([*base, f"run_dir={tmp_path / 'c'}", other_tok], "eval"))
+    for k, v in today.items():
+        if not k.startswith("val/camera/"):
+            assert other[k] == pytest.approx(v, rel=1e-12, nan_ok=True), k
+    for k in ("copy_paste/miou_1s", "warp_cv/miou_1s", "cv_traj/l2_at_horizon_1s"):
+        assert other[f"val/camera/{k}"] == pytest.approx(today[f"val/camera/{k}"], rel=1e-12)
+    changed = [
+        k for k in today
+        if k.startswith("val/camera/model/miou_step") and other[k] != pytest.approx(today[k])
+    ]  # fmt: skip
+    assert changed, "the Camera forecasts are encoded and decoded with the other tokenizer"
+    md = (tmp_path / "c" / "world_model_eval.md").read_text()
+    assert f"tokenizer = {other_tokenizer_ckpt} (camera_tokenizer_ckpt)" in md
+    assert f"3D-Occ = GT occupancy inputs, GT targets, tokenizer = {tokenizer_ckpt}" in md
+    md = (tmp_path / "a" / "world_model_eval.md").read_text()
+    assert f"tokenizer = {tokenizer_ckpt} (the 3D-Occ tokenizer; no camera_tokenizer_ckpt)" in md
+
+
+def test_camera_tokenizer_errors_name_the_key(wm_overrides, tokenizer_ckpt, tmp_path):
+    tok = f"camera_tokenizer_ckpt={tokenizer_ckpt}"
+    cfg = compose_cfg([*wm_overrides, f"run_dir={tmp_path}", "ckpt=x.pt", tok], "eval")
+    with pytest.raises(ValueError, match=r"camera_tokenizer_ckpt: .* needs pseudo_labels="):
+        WorldModelStage(cfg)
+    cfg = compose_cfg([*wm_overrides, f"run_dir={tmp_path}", "ckpt=x.pt",
+                       f"pseudo_labels={tmp_path}",
+                       f"camera_tokenizer_ckpt={tmp_path / 'no.pt'}"], "eval")  # fmt: skip
+    with pytest.raises(ValueError, match=r"camera_tokenizer_ckpt: .*no\.pt' does not exist"):
+        WorldModelStage(cfg)

@@ -17,7 +17,8 @@ per step (full volume, OccWorld protocol; and inside the camera mask, ``cam/``),
 baselines Copy&Paste, constant-velocity warp and constant-velocity trajectory (see
 :mod:`renderworld.training.stages.world_model_eval`). ``val/loss`` is the teacher-forced loss.
 Training validates the run's own setting; ``tools/eval.py ... pseudo_labels=DIR
-[camera_ckpt=PATH]`` scores the 3D-Occ and the Camera setting in one pass and one table (see
+[camera_ckpt=PATH] [camera_tokenizer_ckpt=PATH]`` scores the 3D-Occ and the Camera setting in
+one pass and one table (see
 :mod:`renderworld.training.stages.world_model_settings`); ``on_eval_end`` draws the pictures
 (:mod:`renderworld.training.stages.world_model_pictures`).
 """
@@ -88,8 +89,10 @@ class WorldModelStage(Stage):
         self.settings = stage_settings(cfg)
         self.grid = grid_of(cfg)
         self.horizons = wme.horizons_for(self.settings.future)
-        self._tokenizer: SceneTokenizer | None = None
-        self._codes: dict[tuple[str, str], torch.Tensor] = {}
+        #: Frozen tokenizers by checkpoint path (``stage.tokenizer_ckpt``, and a setting's own).
+        self._tokenizers: dict[str, SceneTokenizer] = {}
+        #: Codes by (tokenizer checkpoint, source, sample token).
+        self._codes: dict[tuple[str, str, str], torch.Tensor] = {}
         self.eval_settings, self._val_occ_root = eval_settings(cfg)
         #: Models of settings evaluated with their own checkpoint (``camera_ckpt``), by key.
         self.setting_models: dict[str, nn.Module] = {}
@@ -99,25 +102,34 @@ class WorldModelStage(Stage):
     @property
     def tokenizer(self) -> SceneTokenizer:
         """The frozen tokenizer (loaded once from ``stage.tokenizer_ckpt``, eval mode)."""
-        if self._tokenizer is None:
-            path = self.settings.tokenizer_ckpt
+        return self.tokenizer_of(None)
+
+    def tokenizer_of(self, path: str | None) -> SceneTokenizer:
+        """The frozen tokenizer of checkpoint ``path`` (None = ``stage.tokenizer_ckpt``).
+
+        ``path`` is a setting's own tokenizer (``camera_tokenizer_ckpt``); loaded once, eval mode.
+        """
+        key_name = "stage.tokenizer_ckpt" if path is None else "camera_tokenizer_ckpt"
+        path = self.settings.tokenizer_ckpt if path is None else str(path)
+        if path not in self._tokenizers:
             try:
                 tok = load_tokenizer(path, "cpu")
             except CheckpointError as err:
-                raise CheckpointError(f"stage.tokenizer_ckpt: {err}") from err
+                raise CheckpointError(f"{key_name}: {err}") from err
             if tuple(tok.cfg.grid_shape) != tuple(self.grid.shape):
                 raise ValueError(
-                    f"stage.tokenizer_ckpt: the tokenizer {path!r} was trained on a "
+                    f"{key_name}: the tokenizer {path!r} was trained on a "
                     f"{tuple(tok.cfg.grid_shape)} grid, this run uses grid {self.grid.name!r} "
                     f"{tuple(self.grid.shape)}; pass grid=<the tokenizer's grid>"
                 )
-            self._tokenizer = tok
-        return self._tokenizer
+            self._tokenizers[path] = tok
+        return self._tokenizers[path]
 
-    def _tokenizer_on(self, device: torch.device) -> SceneTokenizer:
-        tok = self.tokenizer
+    def _tokenizer_on(self, device: torch.device, path: str | None = None) -> SceneTokenizer:
+        tok = self.tokenizer_of(path)
         if next(tok.parameters()).device != device:
-            self._tokenizer = tok = tok.to(device)
+            key = self.settings.tokenizer_ckpt if path is None else str(path)
+            self._tokenizers[key] = tok = tok.to(device)
         return tok
 
     @torch.no_grad()
@@ -128,6 +140,7 @@ class WorldModelStage(Stage):
         device: torch.device,
         inputs: str = "occ",
         source: str | None = None,
+        tokenizer: str | None = None,
     ) -> torch.Tensor:
         """Codes [B, frames, G, h, w] int64 on ``device`` of a batch's first ``frames`` frames.
 
@@ -135,19 +148,24 @@ class WorldModelStage(Stage):
             inputs: batch key of the occupancy to encode (``"occ"`` or ``"occ_target"``).
             source: name of that occupancy's source (cache key with the sample token);
                 default: the run's ``stage.occ_root`` or ``"gt"``.
+            tokenizer: checkpoint of the tokenizer that encodes them (a setting's own);
+                default: ``stage.tokenizer_ckpt``.
 
-        Frames already encoded (same source and sample token) come from the in-memory cache.
+        Frames already encoded (same tokenizer, source and sample token) come from the in-memory
+        cache.
         """
         occ = batch[inputs]
         b = occ.shape[0]
         if source is None:
             source = str(self.cfg.stage.get("occ_root") or "gt")
+        tok_key = self.settings.tokenizer_ckpt if tokenizer is None else str(tokenizer)
         keys = [
-            [(source, k) for k in row[:frames]] for row in wme.frame_keys(batch, b, occ.shape[1])
+            [(tok_key, source, k) for k in row[:frames]]
+            for row in wme.frame_keys(batch, b, occ.shape[1])
         ]
-        tok = self._tokenizer_on(device)
+        tok = self._tokenizer_on(device, tokenizer)
         cache = self._codes if self.settings.cache_tokens else {}
-        todo: dict[tuple[str, str], tuple[int, int]] = {}
+        todo: dict[tuple[str, str, str], tuple[int, int]] = {}
         for i, row in enumerate(keys):
             for j, key in enumerate(row):
                 if key not in cache and key not in todo:
@@ -176,29 +194,58 @@ class WorldModelStage(Stage):
         ckpt = cfg.get("ckpt") if cfg.get("task") == "eval" else None
         if not ckpt or not Path(str(ckpt)).is_file():
             return WorldModel(mine)
+        model = self._model_of_checkpoint(ckpt, mine, "ckpt")
         for s in self.eval_settings:
             if s.ckpt:  # the Camera setting's own model (camera_ckpt), loaded strictly
-                self.setting_models[s.key] = self._load_setting_model(s.ckpt, mine)
-        return self._model_of_checkpoint(ckpt, mine, "ckpt")
+                self.setting_models[s.key] = self._load_setting_model(s, cfg)
+            elif s.tokenizer:  # the ckpt model on the setting's own tokenizer's codes
+                self._check_tokenizer_fits(model.config, s, "ckpt")
+                stored = OmegaConf.create(
+                    load_checkpoint(ckpt, expected_stage="world_model")["config"]
+                )
+                check_same_tokenizer(stored, s.tokenizer, "camera_tokenizer_ckpt")
+        return model
 
-    def _load_setting_model(self, ckpt: str, mine: WorldModelConfig) -> nn.Module:
+    def _check_tokenizer_fits(self, wm: WorldModelConfig, s: EvalSetting, what: str) -> None:
+        """ValueError when setting ``s``'s tokenizer does not give the codes model ``wm`` reads."""
+        tc = self.tokenizer_of(s.tokenizer).cfg
+        got = (tuple(tc.codebook_sizes), tuple(tc.latent_shape))
+        want = (tuple(wm.codebook_sizes), tuple(wm.token_grid))
+        if got != want:
+            raise ValueError(
+                f"camera_tokenizer_ckpt: {s.tokenizer!r} has codebooks {got[0]} on a {got[1]} "
+                f"latent grid, the {what} world model reads {want[0]} on {want[1]}"
+            )
+
+    def _load_setting_model(self, s: EvalSetting, cfg: Any) -> nn.Module:
         from renderworld.training.checkpoint import check_state_dict_keys
 
-        model = self._model_of_checkpoint(ckpt, mine, "camera_ckpt")
+        ckpt = str(s.ckpt)
+        mine = world_model_config(cfg, self.tokenizer_of(s.tokenizer).cfg)
+        model = self._model_of_checkpoint(ckpt, mine, "camera_ckpt", s.tokenizer)
         state = load_checkpoint(ckpt, expected_stage="world_model")["model"]
         check_state_dict_keys(model, state, source=f"camera_ckpt {ckpt!r}")
         model.load_state_dict(state, strict=True)
         return model.eval()
 
-    def _model_of_checkpoint(self, ckpt: Any, mine: WorldModelConfig, what: str) -> WorldModel:
-        """A world model with the architecture stored in ``ckpt`` (checked against ``mine``)."""
+    def _model_of_checkpoint(
+        self, ckpt: Any, mine: WorldModelConfig, what: str, tokenizer: str | None = None
+    ) -> WorldModel:
+        """A world model with the architecture stored in ``ckpt`` (checked against ``mine``).
+
+        ``tokenizer``: checkpoint of the tokenizer it runs on (None = ``stage.tokenizer_ckpt``);
+        a warning when the model was trained on another file.
+        """
         try:
             stored = load_checkpoint(ckpt, expected_stage="world_model")["config"]
         except CheckpointError as err:
             raise CheckpointError(f"{what}: {err}") from err
         stored = OmegaConf.create(stored)
-        check_same_tokenizer(stored, self.settings.tokenizer_ckpt)
-        theirs = world_model_config(stored, self.tokenizer.cfg)
+        if tokenizer is None:
+            check_same_tokenizer(stored, self.settings.tokenizer_ckpt)
+        else:
+            check_same_tokenizer(stored, tokenizer, "camera_tokenizer_ckpt")
+        theirs = world_model_config(stored, self.tokenizer_of(tokenizer).cfg)
         diff = [
             f.name
             for f in fields(WorldModelConfig)
@@ -276,8 +323,10 @@ class WorldModelStage(Stage):
         occ, disp = batch[setting.inputs], batch["ego_displacements"].float()
         device = disp.device
         if tokens is None:
-            tokens = self.window_tokens(batch, h, device, setting.inputs, setting.source)
-        tok = self._tokenizer_on(device)
+            tokens = self.window_tokens(
+                batch, h, device, setting.inputs, setting.source, setting.tokenizer
+            )
+        tok = self._tokenizer_on(device, setting.tokenizer)
         ro = model.rollout(tokens[:, :h], disp[:, : h - 1], batch["command"].long(), steps=f)
         with _no_autocast(device):
             names = tok.cfg.codebook_names
@@ -324,7 +373,9 @@ class WorldModelStage(Stage):
             batch = self.transfer_batch(batch, device)
             occ = batch[first.inputs]
             # Teacher-forced loss of the first setting's model on its whole window.
-            tokens = self.window_tokens(batch, occ.shape[1], device, first.inputs, first.source)
+            tokens = self.window_tokens(
+                batch, occ.shape[1], device, first.inputs, first.source, first.tokenizer
+            )
             terms = self._teacher_forced(self.setting_model(raw, first), batch, tokens)
             for k in sums:
                 sums[k].append(terms[k].detach().double().cpu().expand(occ.shape[0]))
@@ -375,7 +426,7 @@ class WorldModelStage(Stage):
             f"World model evaluation: split {self.cfg.dataset.val_split!r} of "
             f"{self.cfg.dataset.name}, {int(n)} windows, history {self.settings.history}, "
             f"future {self.settings.future}; grid {self.grid.name}",
-            setting_header(self.eval_settings, self.cfg.get("ckpt")),
+            setting_header(self.eval_settings, self.cfg.get("ckpt"), self.settings.tokenizer_ckpt),
             "Forecast: mIoU over classes 0..16, full volume (OccWorld protocol); IoU = occupied "
             "vs free; percent. Camera-mask values in CSV",
             "Planning: L2 at horizon (UniAD); mean-to-horizon in CSV. L2 in metres; Col = "

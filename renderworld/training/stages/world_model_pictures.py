@@ -69,8 +69,8 @@ def write_pictures(stage: Any, model: torch.nn.Module, val_set, run_dir: Path) -
     if "occ_target" in batch:  # the dataset's own source is the pseudo labels
         pseudo = batch["occ"][0].cpu().numpy()
         rows.append(("Img2Occ pseudo label", [pseudo[h - 1 + k] for k in (0, *steps)]))
-    tok = stage._tokenizer_on(device)
     for s in settings:
+        tok = stage._tokenizer_on(device, s.tokenizer)
         forecasts, _ = stage.forecast(stage.setting_model(raw, s), batch, s, None)
         cur = batch[s.inputs][:, h - 1]
         idx = tok.encode(cur).indices
