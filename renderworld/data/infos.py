@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +18,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from renderworld.constants import CAMERA_NAMES, FUTURE_FRAMES
+from renderworld.data.atomic import atomic_write
 from renderworld.data.errors import DatasetError
 
 __all__ = [
@@ -115,17 +115,7 @@ def write_infos(
     }
     meta = {"schema_version": INFOS_SCHEMA_VERSION, **(metadata or {})}
     table = pa.table(columns, schema=schema.with_metadata({_META_KEY: json.dumps(meta)}))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        pq.write_table(table, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return atomic_write(path, lambda tmp: pq.write_table(table, tmp))
 
 
 def _plain(value):

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from renderworld.constants import IGNORE_LABEL
+from renderworld.data.atomic import atomic_write
 from renderworld.data.errors import DatasetError
 
 __all__ = [
@@ -182,17 +182,7 @@ def save_labels2d(
         arrays[f"cam{c}_v"] = lab.v
         arrays[f"cam{c}_depth"] = lab.depth
         arrays[f"cam{c}_label"] = lab.label
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp.npz")
-    os.close(fd)
-    try:
-        np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return atomic_write(path, lambda tmp: np.savez_compressed(tmp, **arrays), ".tmp.npz")
 
 
 def _open(path: Path):

@@ -8,7 +8,6 @@ indexed ``[x, y, z]`` in the ego frame (Occ3D: [200, 200, 16], range
 from __future__ import annotations
 
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from renderworld.constants import FREE_ID
+from renderworld.data.atomic import atomic_write
 from renderworld.data.errors import DatasetError
 
 __all__ = ["Occ3DLabels", "load_occ3d_labels", "save_occ3d_labels", "OCC3D_KEYS"]
@@ -131,14 +131,4 @@ def save_occ3d_labels(
         _validate(path, arrays, None)
     except DatasetError as exc:
         raise ValueError(str(exc)) from None
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp.npz")
-    os.close(fd)
-    try:
-        np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return atomic_write(path, lambda tmp: np.savez_compressed(tmp, **arrays), ".tmp.npz")

@@ -15,7 +15,7 @@ import numpy as np
 from renderworld.constants import FUTURE_FRAMES, KEYFRAME_DT
 from renderworld.metrics.occupancy import OCCUPANCY_PROTOCOL, OccupancyMetric, _to_numpy
 
-__all__ = ["FORECAST_HORIZONS_S", "ForecastMetric", "horizon_steps"]
+__all__ = ["FORECAST_HORIZONS_S", "ForecastMetric", "checked_horizons", "horizon_steps"]
 
 FORECAST_HORIZONS_S: tuple[float, ...] = (1.0, 2.0, 3.0)
 
@@ -29,6 +29,24 @@ def horizon_steps(horizons_s=FORECAST_HORIZONS_S, dt: float = KEYFRAME_DT) -> tu
             raise ValueError(f"horizons_s: {h} s is not a positive multiple of {dt} s")
         steps.append(k)
     return tuple(steps)
+
+
+def checked_horizons(steps: int, horizons_s) -> tuple[tuple[float, ...], tuple[int, ...]]:
+    """Validate a rollout length and its reporting horizons.
+
+    Returns:
+        (horizons in seconds, their 1-based step indices).
+
+    Raises:
+        ValueError: ``steps`` is not an int >= 1, or a horizon is off the step grid or beyond it.
+    """
+    if not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
+    hs = tuple(float(h) for h in horizons_s)
+    ks = horizon_steps(hs)
+    if max(ks) > steps:
+        raise ValueError(f"horizons_s: {hs} need more than {steps} steps")
+    return hs, ks
 
 
 class ForecastMetric:
@@ -46,13 +64,8 @@ class ForecastMetric:
         horizons_s=FORECAST_HORIZONS_S,
         mask_name: str | None = None,
     ):
-        if not isinstance(steps, int) or steps < 1:
-            raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
         self.steps = steps
-        self.horizons_s = tuple(float(h) for h in horizons_s)
-        self.horizon_steps = horizon_steps(self.horizons_s)
-        if max(self.horizon_steps) > steps:
-            raise ValueError(f"horizons_s: {self.horizons_s} need more than {steps} steps")
+        self.horizons_s, self.horizon_steps = checked_horizons(steps, horizons_s)
         self.mask_name = mask_name
         self.per_step = [OccupancyMetric(mask_name=mask_name) for _ in range(steps)]
         self.skipped_frames = 0

@@ -28,7 +28,7 @@ from renderworld.metrics.collision import (
     collisions_with_boxes,
     collisions_with_occupancy,
 )
-from renderworld.metrics.forecast import FORECAST_HORIZONS_S, horizon_steps
+from renderworld.metrics.forecast import FORECAST_HORIZONS_S, checked_horizons
 from renderworld.metrics.occupancy import _to_numpy
 
 __all__ = ["PLANNING_PROTOCOL", "PlanningMetric", "l2_errors"]
@@ -81,13 +81,8 @@ class PlanningMetric:
         box_grid: BevGrid = COLLISION_BEV_GRID,
         occupancy_grid: GridSpec = OCC3D_GRID,
     ):
-        if not isinstance(steps, int) or steps < 1:
-            raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
         self.steps = steps
-        self.horizons_s = tuple(float(h) for h in horizons_s)
-        self.horizon_steps = horizon_steps(self.horizons_s)
-        if max(self.horizon_steps) > steps:
-            raise ValueError(f"horizons_s: {self.horizons_s} need more than {steps} steps")
+        self.horizons_s, self.horizon_steps = checked_horizons(steps, horizons_s)
         self.box_grid = box_grid
         self.occupancy_grid = occupancy_grid
         self.reset()
