@@ -67,6 +67,13 @@ class Img2OccConfig:
             Pearson correlation is blind to an affine change of depth, so it cannot tell a
             veil of half-opaque "air" Gaussians in front of a surface from the surface itself;
             this term can (see the overfitting test).
+        ray_weight: weight of the ray-distribution loss, mean over LiDAR pixels of
+            ``sum_i w_i (z_i - d)^2 / d^2``: the blending weights w_i of the Gaussians along
+            the pixel's ray must sit at the LiDAR depth d (z_i: a Gaussian's camera z). Not
+            in the paper (0 = paper): expected-depth losses cannot see a semi-transparent
+            veil in front of a surface balanced by mass behind it, and this term removes
+            it (DS-NeRF's ray-distribution idea on the 2-D depth labels). Renders each
+            camera separately (two more feature channels).
         adjacent_weight: weight of the adjacent-frame losses relative to the keyframe's.
         near: rasterizer near plane, metres (camera z).
         far: rasterizer far plane, metres.
@@ -113,6 +120,7 @@ class Img2OccConfig:
     semantic_weight: float = 1.0
     depth_weight: float = 1.0
     depth_l1_weight: float = 0.0
+    ray_weight: float = 0.0
     adjacent_weight: float = 0.5
     near: float = 0.1
     far: float = 100.0
@@ -177,7 +185,13 @@ class Img2OccConfig:
             v = getattr(self, name)
             if v is not None:
                 _positive_int(name, v)
-        for name in ("semantic_weight", "depth_weight", "depth_l1_weight", "adjacent_weight"):
+        for name in (
+            "semantic_weight",
+            "depth_weight",
+            "depth_l1_weight",
+            "ray_weight",
+            "adjacent_weight",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(float(v)) and float(v) >= 0):
                 raise ValueError(f"{name}: expected a finite weight >= 0, got {v!r}")

@@ -33,6 +33,7 @@ from renderworld.img2occ.lifting import lift_features
 from renderworld.img2occ.losses import (
     balanced_class_weights,
     pearson_depth_loss,
+    ray_distribution_loss,
     relative_depth_l1_loss,
     semantic_nll_loss,
 )
@@ -191,6 +192,7 @@ class Img2Occ(nn.Module):
             g, cam_to_ego, intrinsics, width=w, height=h,
             render_fn=self.render_fn, prune_opacity=self.cfg.prune_opacity,
             near=self.cfg.near, far=self.cfg.far, backend=self.cfg.render_backend,
+            depth_moments=self.cfg.ray_weight > 0,
         )  # fmt: skip
 
     # ------------------------------------------------------------------ forward
@@ -254,7 +256,19 @@ class Img2Occ(nn.Module):
         rendered, target = views.depth.flatten(0, 1), depth.flatten(0, 1).to(views.depth)
         dep = pearson_depth_loss(rendered, target)
         l1 = relative_depth_l1_loss(rendered, target)
-        return sem, dep, l1
+        ray = rendered.new_zeros(())
+        if views.moments is not None:
+            ray = ray_distribution_loss(
+                views.moments.flatten(0, 1), views.alpha.flatten(0, 1), target
+            )
+        # One weighted sum per view set: semantics, Pearson depth, depth L1 and ray terms.
+        total = (
+            self.cfg.semantic_weight * sem
+            + self.cfg.depth_weight * dep
+            + self.cfg.depth_l1_weight * l1
+            + self.cfg.ray_weight * ray
+        )
+        return total, sem, dep, l1, ray
 
     def loss(self, batch: dict, output: Img2OccOutput) -> tuple[torch.Tensor, dict[str, float]]:
         """The training loss of ``cfg.supervision``, plus the depth-aware lifting's 2-D losses.
@@ -314,29 +328,28 @@ class Img2Occ(nn.Module):
             raise ValueError("output: has no rendered views; call forward(batch, render=True)")
         cfg = self.cfg
         idx = output.view_index
-        sem, dep, l1 = self._view_losses(
+        total, sem, dep, l1, ray = self._view_losses(
             output.views,
             _gather_views(batch["depth"], idx),
             _gather_views(batch["semantics"], idx),
             weights,
         )
-        total = cfg.semantic_weight * sem + cfg.depth_weight * dep + cfg.depth_l1_weight * l1
         logs = {
             "loss_sem": float(sem.detach()),
             "loss_depth": float(dep.detach()),
             "loss_depth_l1": float(l1.detach()),
         }
+        if output.views.moments is not None:
+            logs["loss_ray"] = float(ray.detach())
         if output.adj_views is not None:
             self._check_batch(batch, ("adj_depth", "adj_semantics"))
-            a_sem, a_dep, a_l1 = self._view_losses(
+            a_total, a_sem, a_dep, _, _ = self._view_losses(
                 output.adj_views,
                 _gather_views(batch["adj_depth"], output.adj_index),
                 _gather_views(batch["adj_semantics"], output.adj_index),
                 weights,
             )
-            total = total + cfg.adjacent_weight * (
-                cfg.semantic_weight * a_sem + cfg.depth_weight * a_dep + cfg.depth_l1_weight * a_l1
-            )
+            total = total + cfg.adjacent_weight * a_total
             logs.update(loss_adj_sem=float(a_sem.detach()), loss_adj_depth=float(a_dep.detach()))
         logs["gaussians_rendered"] = float(output.views.num_rendered.float().mean())
         return total, logs

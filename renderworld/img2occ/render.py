@@ -35,12 +35,16 @@ class RenderedViews:
         depth: [B, C, H, W] expected camera-z depth normalised by alpha, metres.
         alpha: [B, C, H, W] accumulated opacity.
         num_rendered: [B] int64 Gaussians rendered per sample after pruning.
+        moments: [B, C, H, W, 2] ``(sum_i w_i z_i, sum_i w_i z_i^2)`` of the blending
+            weights w_i and the Gaussians' camera z (metres, m^2), when rendered with
+            ``depth_moments=True`` (else None).
     """
 
     features: torch.Tensor
     depth: torch.Tensor
     alpha: torch.Tensor
     num_rendered: torch.Tensor
+    moments: torch.Tensor | None = None
 
 
 def render_views(
@@ -54,6 +58,7 @@ def render_views(
     near: float = 0.1,
     far: float = 100.0,
     backend: str = "auto",
+    depth_moments: bool = False,
 ) -> RenderedViews:
     """Render class probabilities (softmax of the logits) and depth into C cameras per sample.
 
@@ -68,6 +73,9 @@ def render_views(
         near: near plane, metres.
         far: far plane, metres.
         backend: rasterizer backend name passed through.
+        depth_moments: also render the first two moments of the Gaussians' camera z under
+            the blending weights (``RenderedViews.moments``); z differs per camera, so each
+            camera is rasterized on its own with the two extra feature channels.
 
     Returns:
         :class:`RenderedViews`.
@@ -83,37 +91,59 @@ def render_views(
     dtype = gaussians.means.dtype
     viewmats = invert_pose(cam_to_ego.to(dtype))
     probs = torch.softmax(gaussians.logits, dim=-1)
-    feats, depths, alphas, counts = [], [], [], []
+    feats, depths, alphas, moments, counts = [], [], [], [], []
+    k = NUM_SEMANTIC_CLASSES
     for i in range(b):
         keep = torch.nonzero(gaussians.opacities[i].detach() > prune_opacity)[:, 0]
         counts.append(keep.numel())
         if keep.numel() == 0:
             # Nothing to draw: an empty image that is still part of the graph.
             zero = gaussians.opacities[i].sum() * 0 + probs[i].sum() * 0
-            feats.append(zero + probs.new_zeros(c, height, width, NUM_SEMANTIC_CLASSES))
+            feats.append(zero + probs.new_zeros(c, height, width, k))
             depths.append(zero + probs.new_zeros(c, height, width))
             alphas.append(zero + probs.new_zeros(c, height, width))
+            moments.append(zero + probs.new_zeros(c, height, width, 2))
             continue
-        out = render_fn(
+        args = dict(
             means=gaussians.means[i, keep],
             quats=gaussians.quats[i, keep],
             scales=gaussians.scales[i, keep],
             opacities=gaussians.opacities[i, keep],
-            features=probs[i, keep],
-            viewmats=viewmats[i],
-            Ks=intrinsics[i].to(dtype),
             width=width,
             height=height,
             near=near,
             far=far,
             backend=backend,
         )
-        feats.append(out.features)
-        depths.append(out.depth)
-        alphas.append(out.alpha)
+        if not depth_moments:
+            out = render_fn(
+                features=probs[i, keep], viewmats=viewmats[i], Ks=intrinsics[i].to(dtype), **args
+            )
+            feats.append(out.features)
+            depths.append(out.depth)
+            alphas.append(out.alpha)
+            continue
+        per_cam = []
+        for j in range(c):
+            rot, trans = viewmats[i, j, :3, :3], viewmats[i, j, :3, 3]
+            z = args["means"] @ rot[2] + trans[2]  # [N] camera z of the Gaussian centres
+            f = torch.cat([probs[i, keep], z[:, None], (z * z)[:, None]], dim=1)
+            per_cam.append(
+                render_fn(
+                    features=f,
+                    viewmats=viewmats[i, j : j + 1],
+                    Ks=intrinsics[i, j : j + 1].to(dtype),
+                    **args,
+                )
+            )
+        feats.append(torch.cat([o.features[..., :k] for o in per_cam]))
+        depths.append(torch.cat([o.depth for o in per_cam]))
+        alphas.append(torch.cat([o.alpha for o in per_cam]))
+        moments.append(torch.cat([o.features[..., k:] for o in per_cam]))
     return RenderedViews(
         features=torch.stack(feats),
         depth=torch.stack(depths),
         alpha=torch.stack(alphas),
         num_rendered=torch.tensor(counts, dtype=torch.long),
+        moments=torch.stack(moments) if depth_moments else None,
     )
