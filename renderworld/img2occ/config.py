@@ -40,7 +40,7 @@ class Img2OccConfig:
         render_size: (H_r, W_r) of the rendered / label maps, pixels.
         encoder_channels: channels of the CNN stages at strides 2, 4, 8, 16, ...; stages
             at and below ``feature_stride`` are merged top-down (FPN-like) into the output.
-        feature_stride: 8 or 16, stride of the FPN-merged feature map.
+        feature_stride: 4, 8 or 16, stride of the FPN-merged feature map.
         feature_channels: D, channels of the image features lifted into the voxels.
         timm_backbone: optional timm model name used instead of the CNN (needs timm).
         timm_weights: local file with that backbone's state dict (never downloaded); needs
@@ -74,6 +74,12 @@ class Img2OccConfig:
             veil in front of a surface balanced by mass behind it, and this term removes
             it (DS-NeRF's ray-distribution idea on the 2-D depth labels). Renders each
             camera separately (two more feature channels).
+        carve_weight: weight of free-space carving, ``-log(1 - opacity)`` of voxels that
+            the keyframe cameras' LiDAR depth maps see as empty (centre more than
+            ``carve_margin`` in front of the pixel's LiDAR depth, and no camera sees the
+            voxel at its surface; ``renderworld.img2occ.carving``). Not in the paper (0 =
+            paper): rendered losses let half-transparent Gaussians fill seen free space.
+        carve_margin: metres (> 0), see ``carve_weight``.
         adjacent_weight: weight of the adjacent-frame losses relative to the keyframe's.
         near: rasterizer near plane, metres (camera z).
         far: rasterizer far plane, metres.
@@ -121,6 +127,8 @@ class Img2OccConfig:
     depth_weight: float = 1.0
     depth_l1_weight: float = 0.0
     ray_weight: float = 0.0
+    carve_weight: float = 0.0
+    carve_margin: float = 1.6
     adjacent_weight: float = 0.5
     near: float = 0.1
     far: float = 100.0
@@ -143,14 +151,14 @@ class Img2OccConfig:
             raise ValueError(f"grid: expected a GridSpec or a grid name, got {self.grid!r}")
         self.input_size = _size("input_size", self.input_size)
         self.render_size = _size("render_size", self.render_size)
-        if self.feature_stride not in (8, 16):
-            raise ValueError(f"feature_stride: expected 8 or 16, got {self.feature_stride!r}")
+        if self.feature_stride not in (4, 8, 16):
+            raise ValueError(f"feature_stride: expected 4, 8 or 16, got {self.feature_stride!r}")
         if any(v % self.feature_stride for v in self.input_size):
             raise ValueError(
                 f"input_size: expected sizes divisible by feature_stride {self.feature_stride} "
                 f"(the stride-2 convs then keep pixel centres aligned), got {self.input_size}"
             )
-        need = 3 if self.feature_stride == 8 else 4
+        need = {4: 2, 8: 3, 16: 4}[self.feature_stride]
         if not isinstance(self.encoder_channels, (tuple, list)) or len(self.encoder_channels) < (
             need
         ):
@@ -190,11 +198,14 @@ class Img2OccConfig:
             "depth_weight",
             "depth_l1_weight",
             "ray_weight",
+            "carve_weight",
             "adjacent_weight",
         ):
             v = getattr(self, name)
             if not (math.isfinite(float(v)) and float(v) >= 0):
                 raise ValueError(f"{name}: expected a finite weight >= 0, got {v!r}")
+        if not (math.isfinite(float(self.carve_margin)) and float(self.carve_margin) > 0):
+            raise ValueError(f"carve_margin: expected > 0 metres, got {self.carve_margin!r}")
         if not (0 < self.near < self.far):
             raise ValueError(f"near/far: expected 0 < near < far, got {self.near}, {self.far}")
         if not (self.lift_near > 0):

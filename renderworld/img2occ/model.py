@@ -19,6 +19,7 @@ from torch import nn
 
 from renderworld.constants import FREE_ID
 from renderworld.geometry import VoxelGrid, scale_intrinsics
+from renderworld.img2occ.carving import free_space_loss, free_space_targets
 from renderworld.img2occ.config import Img2OccConfig
 from renderworld.img2occ.depth_lift import (
     DepthSemanticHead,
@@ -341,6 +342,15 @@ class Img2Occ(nn.Module):
         }
         if output.views.moments is not None:
             logs["loss_ray"] = float(ray.detach())
+        if cfg.carve_weight > 0:
+            g = output.gaussians
+            free = free_space_targets(
+                self.centres, batch["cam_to_ego"], batch["render_intrinsics"],
+                batch["depth"], cfg.carve_margin, near=cfg.near,
+            )  # fmt: skip
+            carve = free_space_loss(g.opacities, free, cfg.prob_eps)
+            total = total + cfg.carve_weight * carve
+            logs.update(loss_carve=float(carve.detach()), carved=float(free.float().mean()))
         if output.adj_views is not None:
             self._check_batch(batch, ("adj_depth", "adj_semantics"))
             a_total, a_sem, a_dep, _, _ = self._view_losses(

@@ -255,7 +255,7 @@ def test_input_validation(synthetic_batch):
         ({"grid": "nope"}, "grid: unknown grid"),
         ({"input_size": (50, 88)}, "input_size: expected sizes divisible"),
         ({"render_size": (0, 32)}, "render_size: expected a positive int"),
-        ({"feature_stride": 4}, "feature_stride: expected 8 or 16"),
+        ({"feature_stride": 2}, "feature_stride: expected 4, 8 or 16"),
         ({"encoder_channels": (8, 16)}, "encoder_channels: expected at least 3"),
         ({"scale_range": (0.5, 0.2)}, "scale_range"),
         ({"init_opacity": 1.0}, "init_opacity"),
@@ -301,13 +301,13 @@ def test_depth_moments_agree_with_the_rendered_depth(synthetic_batch):
     assert bool((s2 * with_m.views.alpha - s1 * s1 >= -1e-3 * s2.clamp_min(1)).all())
 
 
-def test_ray_loss_trains_finite_on_hard_cases(synthetic_batch):
-    model = _model("torch", views_per_step=None, ray_weight=2.0)
+def test_ray_and_carving_losses_train_finite_on_hard_cases(synthetic_batch):
+    model = _model("torch", views_per_step=None, ray_weight=2.0, carve_weight=1.0)
     model.train()
     for case in ("all_free_targets", "no_lidar_at_all", "zero_images"):
         batch = _hard_case(synthetic_batch, case)
         loss, logs = model.loss(batch, model(batch))
-        assert torch.isfinite(loss) and "loss_ray" in logs, logs
+        assert torch.isfinite(loss) and "loss_ray" in logs and "loss_carve" in logs, logs
         loss.backward()
         for name, p in model.named_parameters():
             assert p.grad is None or torch.isfinite(p.grad).all(), name
