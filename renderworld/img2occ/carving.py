@@ -81,8 +81,7 @@ def free_space_loss(opacities: torch.Tensor, free: torch.Tensor, eps: float = 1e
     """
     if free.shape != opacities.shape:
         raise ValueError(
-            f"free: expected the opacities' shape {tuple(opacities.shape)}, got "
-            f"{tuple(free.shape)}"
+            f"free: expected the opacities' shape {tuple(opacities.shape)}, got {tuple(free.shape)}"
         )
     nll = -torch.log1p(-opacities.clamp(0.0, 1.0 - eps))
     m = free.to(nll.dtype)

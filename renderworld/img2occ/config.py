@@ -96,6 +96,12 @@ class Img2OccConfig:
         depth_range: (d_min, d_max) metres of camera z covered by the D equal-width bins.
         lift_depth_weight: weight of the per-pixel depth-bin cross-entropy (needs depth_bins).
         lift_semantic_weight: weight of the per-pixel class cross-entropy (needs depth_bins).
+        fine_semantics: add the fine per-pixel semantic head (``renderworld.img2occ.
+            fine_semantics``, needs depth_bins): class logits at the encoder's first stage,
+            supervised by the 2-D semantic maps, lifted instead of the coarse ones and added
+            to the Gaussians' logits through a learned skip. Not in the paper.
+        fine_semantic_weight: weight of the fine head's pixel cross-entropy.
+        fine_class_balance: p in [0, 1], class balancing of that cross-entropy.
         class_balance: p in [0, 1]: the semantic cross-entropies (rendered and per-pixel)
             weigh each label by its frequency in the batch to the power -p (mean weight 1);
             0 = unweighted (the paper).
@@ -139,6 +145,9 @@ class Img2OccConfig:
     depth_range: tuple[float, float] = (1.0, 61.0)
     lift_depth_weight: float = 1.0
     lift_semantic_weight: float = 1.0
+    fine_semantics: bool = False
+    fine_semantic_weight: float = 1.0
+    fine_class_balance: float = 0.5
     class_balance: float = 0.0
     supervision: str = "2d"
     occupancy_3d_weight: float = 1.0
@@ -222,11 +231,20 @@ class Img2OccConfig:
             raise ValueError(
                 f"class_balance: expected a value in [0, 1], got {self.class_balance!r}"
             )
+        if not isinstance(self.fine_semantics, bool):
+            raise ValueError(f"fine_semantics: expected a bool, got {self.fine_semantics!r}")
+        if self.fine_semantics and not self.depth_bins:
+            raise ValueError("fine_semantics: needs depth-aware lifting (depth_bins >= 2)")
+        if not (0.0 <= float(self.fine_class_balance) <= 1.0):
+            raise ValueError(
+                f"fine_class_balance: expected a value in [0, 1], got {self.fine_class_balance!r}"
+            )
         if self.supervision not in ("2d", "3d"):
             raise ValueError(f"supervision: expected '2d' or '3d', got {self.supervision!r}")
         for name in (
             "lift_depth_weight",
             "lift_semantic_weight",
+            "fine_semantic_weight",
             "occupancy_3d_weight",
             "semantic_3d_weight",
         ):

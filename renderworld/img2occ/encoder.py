@@ -108,6 +108,8 @@ class ImageEncoder(nn.Module):
             self.trunk = nn.ModuleList(stages)
             channels = list(widths)
             strides = [2 ** (i + 1) for i in range(len(widths))]
+        self._fine_channels = int(channels[0])
+        self.fine_stride = int(strides[0])
         if self.stride not in strides:
             raise ValueError(
                 f"feature_stride: the encoder has stages at strides {strides}, got {self.stride}"
@@ -121,14 +123,22 @@ class ImageEncoder(nn.Module):
         )
         self.out = nn.Conv2d(d, d, 1)
 
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
+    @property
+    def fine_channels(self) -> int:
+        """Channels of the first-stage map (stride ``fine_stride``) that
+        ``forward(..., return_fine=True)`` also gives."""
+        return self._fine_channels
+
+    def forward(self, images: torch.Tensor, return_fine: bool = False):
         """Encode images.
 
         Args:
             images: [N, 3, H_in, W_in] float in [0, 1].
+            return_fine: also return the first stage's features (stride ``fine_stride``).
 
         Returns:
-            [N, D, H_in / stride, W_in / stride] features.
+            [N, D, H_in / stride, W_in / stride] features; with ``return_fine`` the tuple
+            ``(features, fine [N, fine_channels, H_in / fine_stride, W_in / fine_stride])``.
         """
         x = (images - self.mean) / self.std
         if isinstance(self.trunk, nn.ModuleList):
@@ -145,4 +155,5 @@ class ImageEncoder(nn.Module):
                 up = F.interpolate(merged, size=y.shape[-2:], mode="bilinear", align_corners=False)
                 y = y + up
             merged = y
-        return self.out(self.smooth(merged))
+        out = self.out(self.smooth(merged))
+        return (out, feats[0]) if return_fine else out

@@ -72,7 +72,8 @@ def lift_features(
         near: a camera sees a point only when its camera z exceeds this (metres).
         depth_cdf: optional [B, C, D + 1, h, w] per-pixel depth CDF at ``edges`` (turns on
             the depth-aware lifting; needs ``class_probs``, ``edges`` and ``radius``).
-        class_probs: [B, C, K, h, w] per-pixel class probabilities.
+        class_probs: [B, C, K, h', w'] per-pixel class probabilities of the same images, at
+            the feature resolution or any other (e.g. a finer semantic map).
         edges: [D + 1] equal-width depth-bin edges, metres camera z.
         radius: half the depth extent of a voxel along a ray, metres (> 0).
 
@@ -100,10 +101,9 @@ def lift_features(
             raise ValueError(
                 f"class_probs: expected [{b}, {c}, K, {h}, {w}], got {tuple(class_probs.shape)}"
             )
-        if class_probs.shape[3:] != (h, w):
-            raise ValueError(
-                f"class_probs: expected [{b}, {c}, K, {h}, {w}], got {tuple(class_probs.shape)}"
-            )
+        # class_probs may have its own resolution (a finer semantic map of the same image
+        # extent): it is then sampled on its own with the same normalised coordinates.
+        separate = class_probs.shape[3:] != (h, w)
         n_edges, k = edges.numel(), class_probs.shape[2]
         extra_sum = features.new_zeros(b, 2 + k, centres.shape[0])
     v = centres.shape[0]
@@ -126,7 +126,8 @@ def lift_features(
         grid = (2.0 * uv / size - 1.0).clamp(-2.0, 2.0)  # invisible ones are masked anyway
         maps = features[:, ci]
         if depth_aware:
-            maps = torch.cat([maps, depth_cdf[:, ci].to(dtype), class_probs[:, ci].to(dtype)], 1)
+            parts = [maps, depth_cdf[:, ci].to(dtype)]
+            maps = torch.cat(parts if separate else [*parts, class_probs[:, ci].to(dtype)], 1)
         sample = F.grid_sample(
             maps,
             grid[:, None],  # [B, 1, V, 2]
@@ -139,7 +140,16 @@ def lift_features(
             cdf = sample[:, d : d + n_edges]
             before = interp_cdf(cdf, edges, z - radius)  # surface before the voxel
             mass = (interp_cdf(cdf, edges, z + radius) - before).clamp_min(0.0) * m
-            probs = sample[:, d + n_edges :]
+            if separate:
+                probs = F.grid_sample(
+                    class_probs[:, ci].to(dtype),
+                    grid[:, None],
+                    mode="bilinear",
+                    padding_mode="border",
+                    align_corners=False,
+                )[:, :, 0]
+            else:
+                probs = sample[:, d + n_edges :]
             sample = sample[:, :d] * mass[:, None]
             extra_sum = extra_sum + torch.cat(
                 [mass[:, None], (before * m)[:, None], probs * mass[:, None]], 1

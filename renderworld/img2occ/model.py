@@ -29,6 +29,7 @@ from renderworld.img2occ.depth_lift import (
     occupancy_3d_loss,
 )
 from renderworld.img2occ.encoder import ImageEncoder
+from renderworld.img2occ.fine_semantics import FineSemanticHead, pixel_class_loss
 from renderworld.img2occ.head import AnchorGaussians, GaussianHead
 from renderworld.img2occ.lifting import lift_features
 from renderworld.img2occ.losses import (
@@ -60,6 +61,8 @@ class Img2OccOutput:
         adj_index: [B, Ca] int64 (or None).
         image_logits: depth-aware lifting only: [B, C, D + K, h, w] per-pixel depth-bin and
             class logits of the keyframe cameras (else None).
+        fine_logits: ``fine_semantics`` only: [B, C, K, h_f, w_f] class logits at the
+            encoder's first stage (else None).
     """
 
     gaussians: AnchorGaussians
@@ -70,6 +73,7 @@ class Img2OccOutput:
     adj_views: RenderedViews | None = None
     adj_index: torch.Tensor | None = None
     image_logits: torch.Tensor | None = None
+    fine_logits: torch.Tensor | None = None
 
 
 def readout_occupancy(
@@ -117,6 +121,11 @@ class Img2Occ(nn.Module):
             self.depth_head = DepthSemanticHead(self.cfg.feature_channels, self.cfg.depth_bins)
             edges = depth_bin_edges(self.cfg.depth_bins, self.cfg.depth_range).float()
             self.register_buffer("depth_edges", edges, persistent=False)
+        self.fine_head = None
+        if self.cfg.fine_semantics:
+            self.fine_head = FineSemanticHead(self.encoder.fine_channels, self.cfg.feature_channels)
+            # Weight of the lifted fine class distribution added to the Gaussians' logits.
+            self.semantic_skip = nn.Parameter(torch.tensor(1.0))
         grid = VoxelGrid(self.cfg.grid)
         centres = torch.as_tensor(grid.centres(), dtype=torch.float32).view(-1, 3)
         self.register_buffer("centres", centres, persistent=False)
@@ -136,9 +145,11 @@ class Img2Occ(nn.Module):
         if missing:
             raise ValueError(f"batch: missing key(s) {missing}; got {sorted(batch)}")
 
-    def encode(self, batch: dict) -> tuple[AnchorGaussians, torch.Tensor, torch.Tensor | None]:
-        """Images → Gaussians, per-voxel camera visibility counts [B, V] and the per-pixel
-        depth/class logits [B, C, D + K, h, w] of depth-aware lifting (None without)."""
+    def encode(self, batch: dict) -> tuple:
+        """Images → ``(gaussians, count, image_logits, fine_logits)``: the Gaussians,
+        per-voxel camera visibility counts [B, V], the per-pixel depth/class logits
+        [B, C, D + K, h, w] of depth-aware lifting and the fine class logits
+        [B, C, K, h_f, w_f] of ``fine_semantics`` (each None when off)."""
         self._check_batch(batch, _KEY_INPUTS)
         images = batch["images"]
         h_in, w_in = self.cfg.input_size
@@ -148,7 +159,13 @@ class Img2Occ(nn.Module):
                 f"got {tuple(images.shape)}"
             )
         b, c = images.shape[:2]
-        feats = self.encoder(images.flatten(0, 1))
+        fine_logits = None
+        if self.fine_head is not None:
+            feats, fine = self.encoder(images.flatten(0, 1), return_fine=True)
+            fine_logits = self.fine_head(fine, feats)
+            fine_logits = fine_logits.view(b, c, *fine_logits.shape[1:])
+        else:
+            feats = self.encoder(images.flatten(0, 1))
         feats = feats.view(b, c, *feats.shape[1:])
         stride = self.cfg.feature_stride
         k_feat = scale_intrinsics(batch["intrinsics"].to(feats.dtype), 1.0 / stride)
@@ -161,7 +178,9 @@ class Img2Occ(nn.Module):
                 "depth_cdf": depth_cdf(image_logits[:, :, :d].flatten(0, 1)).view(
                     b, c, d + 1, *image_logits.shape[-2:]
                 ),
-                "class_probs": torch.softmax(image_logits[:, :, d:], dim=2),
+                "class_probs": torch.softmax(
+                    image_logits[:, :, d:] if fine_logits is None else fine_logits, dim=2
+                ),
                 "edges": self.depth_edges,
                 "radius": 0.5 * float(sum(self.cfg.grid.voxel_size)) / 3.0,
             }
@@ -180,7 +199,14 @@ class Img2Occ(nn.Module):
         )
         parts = [lift.features, enc] + ([lift.extras] if lift.extras is not None else [])
         vox = torch.cat(parts, dim=1).view(b, -1, *self.cfg.grid.shape)
-        return self.head(vox, self.centres), lift.count, image_logits
+        g = self.head(vox, self.centres)
+        if self.fine_head is not None:
+            # Skip: log of the lifted (mass-weighted, renormalised) class distribution; voxels
+            # no camera's surface reaches get a constant, which leaves their argmax alone.
+            p = lift.extras[:, 2:].transpose(1, 2)  # [B, V, K]
+            p = p / p.sum(-1, keepdim=True).clamp_min(1e-6)
+            g.logits = g.logits + self.semantic_skip * torch.log(p + 1e-3)
+        return g, lift.count, image_logits, fine_logits
 
     def _pick(self, b: int, c: int, k: int | None, device) -> torch.Tensor:
         if not self.training or k is None or k >= c:
@@ -210,10 +236,11 @@ class Img2Occ(nn.Module):
         Returns:
             :class:`Img2OccOutput`.
         """
-        g, count, image_logits = self.encode(batch)
+        g, count, image_logits, fine_logits = self.encode(batch)
         b = count.shape[0]
         out = Img2OccOutput(g, count.view(b, *self.cfg.grid.shape), self.cfg.grid.shape)
         out.image_logits = image_logits
+        out.fine_logits = fine_logits
         if render is None:
             render = not (self.training and self.cfg.supervision == "3d")
         if not render:
@@ -320,6 +347,17 @@ class Img2Occ(nn.Module):
             )
             total = total + cfg.lift_depth_weight * dce + cfg.lift_semantic_weight * sce
             logs.update(loss_pixel_depth=float(dce.detach()), loss_pixel_sem=float(sce.detach()))
+        if output.fine_logits is not None:
+            fs = self.encoder.fine_stride
+            fce = pixel_class_loss(
+                output.fine_logits,
+                scale_intrinsics(batch["intrinsics"].to(output.fine_logits.dtype), 1.0 / fs),
+                batch["render_intrinsics"],
+                batch["semantics"],
+                cfg.fine_class_balance,
+            )
+            total = total + cfg.fine_semantic_weight * fce
+            logs["loss_fine_sem"] = float(fce.detach())
         logs["loss"] = float(total.detach())
         logs["mean_opacity"] = float(output.gaussians.opacities.detach().mean())
         return total, logs

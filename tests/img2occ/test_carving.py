@@ -41,9 +41,7 @@ def test_a_voxel_seen_at_a_surface_by_another_camera_is_not_carved():
     depth[0, 0, 2, 2] = 10.0  # camera 0: empty up to 10 m
     depth[0, 1, 2, 2] = 3.2  # camera 1 (same pose): a surface at 3.2 m
     centres = torch.tensor([[3.0, 0.0, 0.0]])
-    assert free_space_targets(centres, two, k.repeat(1, 2, 1, 1), depth, 1.0).tolist() == [
-        [False]
-    ]
+    assert free_space_targets(centres, two, k.repeat(1, 2, 1, 1), depth, 1.0).tolist() == [[False]]
 
 
 def test_free_space_loss_value_gradient_and_empty_case():
