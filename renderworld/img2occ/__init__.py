@@ -20,13 +20,14 @@ from renderworld.img2occ.losses import (
     rendered_distribution,
     semantic_nll_loss,
 )
-from renderworld.img2occ.model import Img2Occ, Img2OccOutput, readout_occupancy
+from renderworld.img2occ.model import Img2Occ, Img2OccOutput
 from renderworld.img2occ.readout import (
     ThresholdSearch,
     choose_threshold,
     confusion_matrix,
     geometry_iou_from_confusion,
     miou_from_confusion,
+    readout_occupancy,
 )
 from renderworld.img2occ.render import RenderedViews, render_views
 from renderworld.img2occ.viz import colorize_semantics, draw_views

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from renderworld.constants import FREE_ID
 from renderworld.geometry import VoxelGrid, scale_intrinsics
 from renderworld.img2occ.carving import free_space_loss, free_space_targets
 from renderworld.img2occ.config import Img2OccConfig
@@ -39,9 +38,10 @@ from renderworld.img2occ.losses import (
     relative_depth_l1_loss,
     semantic_nll_loss,
 )
+from renderworld.img2occ.readout import readout_occupancy
 from renderworld.img2occ.render import RenderedViews, render_views
 
-__all__ = ["Img2Occ", "Img2OccOutput", "readout_occupancy"]
+__all__ = ["Img2Occ", "Img2OccOutput"]
 
 _KEY_INPUTS = ("images", "intrinsics", "cam_to_ego")
 _KEY_TARGETS = ("render_intrinsics", "depth", "semantics")
@@ -74,25 +74,6 @@ class Img2OccOutput:
     adj_index: torch.Tensor | None = None
     image_logits: torch.Tensor | None = None
     fine_logits: torch.Tensor | None = None
-
-
-def readout_occupancy(
-    opacities: torch.Tensor, logits: torch.Tensor, threshold: float, grid_shape
-) -> torch.Tensor:
-    """Voxel classes: argmax of logits where opacity > threshold, else ``FREE_ID``.
-
-    Args:
-        opacities: [B, V] in (0, 1).
-        logits: [B, V, K].
-        threshold: opacity threshold.
-        grid_shape: (X, Y, Z) with X·Y·Z = V.
-
-    Returns:
-        [B, X, Y, Z] uint8 Occ3D ids (``FREE_ID`` = free).
-    """
-    cls = logits.argmax(-1)
-    out = torch.where(opacities > threshold, cls, torch.full_like(cls, FREE_ID))
-    return out.to(torch.uint8).view(opacities.shape[0], *grid_shape)
 
 
 def _gather_views(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:

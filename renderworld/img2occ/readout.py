@@ -25,6 +25,7 @@ __all__ = [
     "confusion_matrix",
     "miou_from_confusion",
     "geometry_iou_from_confusion",
+    "readout_occupancy",
 ]
 
 #: Candidate opacity thresholds searched by default.
@@ -158,3 +159,22 @@ def choose_threshold(
     model.set_threshold(best)
     scores = search.scores(criterion)
     return best, {float(t): float(s) for t, s in zip(search.thresholds, scores)}
+
+
+def readout_occupancy(
+    opacities: torch.Tensor, logits: torch.Tensor, threshold: float, grid_shape
+) -> torch.Tensor:
+    """Voxel classes: argmax of logits where opacity > threshold, else ``FREE_ID``.
+
+    Args:
+        opacities: [B, V] in (0, 1).
+        logits: [B, V, K].
+        threshold: opacity threshold.
+        grid_shape: (X, Y, Z) with X·Y·Z = V.
+
+    Returns:
+        [B, X, Y, Z] uint8 Occ3D ids (``FREE_ID`` = free).
+    """
+    cls = logits.argmax(-1)
+    out = torch.where(opacities > threshold, cls, torch.full_like(cls, FREE_ID))
+    return out.to(torch.uint8).view(opacities.shape[0], *grid_shape)
