@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from renderworld.constants import NUM_SEMANTIC_CLASSES
 from renderworld.geometry import VoxelGrid, scale_intrinsics
 from renderworld.img2occ.carving import free_space_loss, free_space_targets
 from renderworld.img2occ.config import Img2OccConfig
@@ -117,6 +118,9 @@ class Img2Occ(nn.Module):
         self.register_buffer(
             "occupancy_threshold", torch.tensor(float(self.cfg.occupancy_threshold))
         )
+        # Optional per-class thresholds (negative = unset: the single one applies).
+        self.register_buffer("class_thresholds", torch.full((NUM_SEMANTIC_CLASSES,), -1.0))
+        self._register_load_state_dict_pre_hook(_default_class_thresholds)
 
     # ------------------------------------------------------------------ inputs
     def _check_batch(self, batch: dict, keys) -> None:
@@ -390,9 +394,24 @@ class Img2Occ(nn.Module):
             raise ValueError(f"threshold: expected a value in [0, 1), got {threshold!r}")
         self.occupancy_threshold.fill_(float(threshold))
 
+    def set_class_thresholds(self, thresholds) -> None:
+        """Store per-class readout thresholds ([K] values in [0, 1)) in the model's state."""
+        t = torch.as_tensor(thresholds, dtype=torch.float32).reshape(-1)
+        if t.numel() != NUM_SEMANTIC_CLASSES or not bool(((t >= 0) & (t < 1)).all()):
+            raise ValueError(
+                f"thresholds: expected {NUM_SEMANTIC_CLASSES} values in [0, 1), got {t.tolist()}"
+            )
+        self.class_thresholds.copy_(t)
+
     def readout(self, output: Img2OccOutput) -> torch.Tensor:
-        """3-D semantic occupancy [B, X, Y, Z] uint8 (``FREE_ID`` = free), ego frame."""
+        """3-D semantic occupancy [B, X, Y, Z] uint8 (``FREE_ID`` = free), ego frame: the
+        per-class thresholds when set, else the single one."""
         g = output.gaussians
-        return readout_occupancy(
-            g.opacities, g.logits, float(self.occupancy_threshold), output.grid_shape
-        )
+        t = self.class_thresholds
+        threshold = t if bool((t >= 0).all()) else float(self.occupancy_threshold)
+        return readout_occupancy(g.opacities, g.logits, threshold, output.grid_shape)
+
+
+def _default_class_thresholds(state_dict, prefix, *args, **kwargs) -> None:
+    # Checkpoints written before per-class thresholds existed: unset (-1), single threshold.
+    state_dict.setdefault(prefix + "class_thresholds", torch.full((NUM_SEMANTIC_CLASSES,), -1.0))

@@ -106,6 +106,22 @@ class ThresholdSearch:
             return np.array([geometry_iou_from_confusion(c) for c in self.conf])
         raise ValueError(f"criterion: expected 'miou' or 'iou', got {criterion!r}")
 
+    def best_per_class(self) -> np.ndarray:
+        """[K] thresholds, one per class 0..16, each maximising that class's IoU.
+
+        A class's IoU depends only on which voxels read as that class, i.e. on its own
+        threshold, so choosing each one on its own maximises the mIoU over all per-class
+        choices among the candidates. Ties take the lowest threshold; a class absent from
+        the accumulated GT and predictions gets the single best-mIoU threshold.
+        """
+        fallback = self.best("miou")
+        ious = np.stack([miou_from_confusion(c)[1][:FREE_ID] for c in self.conf])  # [T, K]
+        out = np.full(FREE_ID, fallback)
+        for k in range(FREE_ID):
+            if np.isfinite(ious[:, k]).any():
+                out[k] = self.thresholds[int(np.nanargmax(ious[:, k]))]
+        return out
+
     def best(self, criterion: str = "miou") -> float:
         """The threshold with the highest score (the lowest one on ties; NaN scores lose)."""
         s = self.scores(criterion)
@@ -121,6 +137,7 @@ def choose_threshold(
     thresholds: Sequence[float] = DEFAULT_THRESHOLDS,
     criterion: str = "miou",
     use_camera_mask: bool = True,
+    per_class: bool = False,
 ) -> tuple[float, dict[float, float]]:
     """Pick the readout threshold maximising training-split mIoU and store it in ``model``.
 
@@ -131,6 +148,9 @@ def choose_threshold(
         thresholds: candidates.
         criterion: ``"miou"`` (default, Occ3D mIoU over 0..16) or ``"iou"`` (geometry).
         use_camera_mask: count only camera-visible voxels (Occ3D protocol).
+        per_class: also choose one threshold per class (:meth:`ThresholdSearch.
+            best_per_class`, needs criterion "miou") and store them in
+            ``model.class_thresholds``; the returned threshold is then the single best one.
 
     Returns:
         ``(threshold, {threshold: score})``; the threshold is also written to
@@ -157,24 +177,29 @@ def choose_threshold(
         raise ValueError("batches: empty; expected at least one batch with GT")
     best = search.best(criterion)
     model.set_threshold(best)
+    if per_class:
+        if criterion != "miou":
+            raise ValueError("per_class: needs criterion 'miou' (geometry IoU is not per class)")
+        model.set_class_thresholds(search.best_per_class())
     scores = search.scores(criterion)
     return best, {float(t): float(s) for t, s in zip(search.thresholds, scores)}
 
 
-def readout_occupancy(
-    opacities: torch.Tensor, logits: torch.Tensor, threshold: float, grid_shape
-) -> torch.Tensor:
+def readout_occupancy(opacities: torch.Tensor, logits: torch.Tensor, threshold, grid_shape):
     """Voxel classes: argmax of logits where opacity > threshold, else ``FREE_ID``.
 
     Args:
         opacities: [B, V] in (0, 1).
         logits: [B, V, K].
-        threshold: opacity threshold.
+        threshold: opacity threshold, a float or a [K] tensor of per-class thresholds (the
+            one of each voxel's argmax class applies).
         grid_shape: (X, Y, Z) with X·Y·Z = V.
 
     Returns:
         [B, X, Y, Z] uint8 Occ3D ids (``FREE_ID`` = free).
     """
     cls = logits.argmax(-1)
+    if isinstance(threshold, torch.Tensor) and threshold.ndim == 1:
+        threshold = threshold.to(opacities)[cls]
     out = torch.where(opacities > threshold, cls, torch.full_like(cls, FREE_ID))
     return out.to(torch.uint8).view(opacities.shape[0], *grid_shape)

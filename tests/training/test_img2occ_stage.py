@@ -136,6 +136,10 @@ def test_stage_config_composes_and_validates(converted, tmp_path):
         ("stage.threshold.criterion=f1", r"stage.threshold.criterion: expected 'miou' or 'iou'"),
         ("stage.threshold.candidates=[0.5,1.5]", r"stage.threshold.candidates: expected values"),
         ("stage.threshold.max_samples=0", r"stage.threshold.max_samples: expected null or an int"),
+        (
+            "stage.threshold.per_class=yes",
+            r"stage.threshold.per_class: expected true \(with criterion miou\) or false",
+        ),
     ],
 )
 def test_bad_threshold_options_fail_before_training(converted, tmp_path, override, message):

@@ -36,6 +36,7 @@ from omegaconf import OmegaConf
 from torch import nn
 from torch.utils.data import DataLoader, Dataset, Subset, default_collate
 
+from renderworld.constants import OCC3D_CLASSES
 from renderworld.img2occ import Img2Occ, Img2OccConfig, choose_threshold, draw_views
 from renderworld.img2occ.readout import DEFAULT_THRESHOLDS
 from renderworld.training.checkpoint import (
@@ -88,8 +89,8 @@ def _adjacent(cfg: Any) -> int:
     return k
 
 
-def _threshold_options(cfg: Any) -> tuple[str, list[float], int | None]:
-    """(criterion, candidates, max_samples) of ``stage.threshold``, validated."""
+def _threshold_options(cfg: Any) -> tuple[str, list[float], int | None, bool]:
+    """(criterion, candidates, max_samples, per_class) of ``stage.threshold``, validated."""
     t = cfg.stage.get("threshold") or {}
     criterion = str(t.get("criterion", "miou"))
     if criterion not in ("miou", "iou"):
@@ -101,7 +102,13 @@ def _threshold_options(cfg: Any) -> tuple[str, list[float], int | None]:
     cap = t.get("max_samples")
     if cap is not None and (isinstance(cap, bool) or not isinstance(cap, int) or cap < 1):
         raise ValueError(f"stage.threshold.max_samples: expected null or an int >= 1, got {cap!r}")
-    return criterion, candidates, cap
+    per_class = t.get("per_class", False)
+    if not isinstance(per_class, bool) or (per_class and criterion != "miou"):
+        raise ValueError(
+            f"stage.threshold.per_class: expected true (with criterion miou) or false, got "
+            f"{per_class!r} with criterion {criterion!r}"
+        )
+    return criterion, candidates, cap, per_class
 
 
 def img2occ_config(cfg: Any) -> Img2OccConfig:
@@ -197,7 +204,6 @@ def occ3d_report_markdown(metrics: dict[str, float], title: str, notes: list[str
     Per-class IoU inside the camera mask (classes 0..16, "–" = absent from GT and prediction,
     left out of the mean), then mIoU and geometry IoU for each mask. Values in percent.
     """
-    from renderworld.constants import OCC3D_CLASSES
     from renderworld.metrics.occupancy import OCCUPANCY_PROTOCOL
 
     lines = [f"# {title}", "", *[f"- {n}" for n in notes], f"- protocol: {OCCUPANCY_PROTOCOL}"]
@@ -300,13 +306,18 @@ class Img2OccStage(Stage):
         return data
 
     def _choose(self, model: Img2Occ, data: Dataset) -> dict[str, Any]:
-        criterion, candidates, _ = _threshold_options(self.cfg)
+        criterion, candidates, _, per_class = _threshold_options(self.cfg)
         device = next(model.parameters()).device
         batches = (self.transfer_batch(b, device) for b in self._loader(data))
         initial = float(model.occupancy_threshold)
-        value, scores = choose_threshold(model, batches, candidates, criterion, True)
+        value, scores = choose_threshold(model, batches, candidates, criterion, True, per_class)
         return {
             "value": value,
+            "per_class": (
+                {c: float(t) for c, t in zip(OCC3D_CLASSES, model.class_thresholds.tolist())}
+                if per_class
+                else None
+            ),
             "initial": initial,
             "criterion": criterion,
             "mask": "camera",
@@ -379,6 +390,7 @@ class Img2OccStage(Stage):
         ckpt = dict(ckpt)
         state = dict(ckpt["model"])
         state["occupancy_threshold"] = model.occupancy_threshold.detach().cpu().clone()
+        state["class_thresholds"] = model.class_thresholds.detach().cpu().clone()
         ckpt["model"] = state
         record = dict(record, metrics_at_initial=dict(ckpt.get("metrics") or {}))
         ckpt["threshold"] = record
@@ -392,12 +404,19 @@ class Img2OccStage(Stage):
         out = Path(run_dir)
         raw = model.module if hasattr(model, "module") else model
         threshold = float(raw.occupancy_threshold)
+        per_class = raw.class_thresholds.tolist()
+        rule = f"opacity > {threshold:g} (the checkpoint's stored threshold)"
+        if min(per_class) >= 0:
+            rule = (
+                "opacity > the stored per-class threshold of the argmax class ("
+                + ", ".join(f"{c} {t:g}" for c, t in zip(OCC3D_CLASSES, per_class))
+                + ")"
+            )
         notes = [
             f"checkpoint: `{self.cfg.get('ckpt')}` (step {int(metrics.get('step', -1))})",
             f"split: `{self.cfg.dataset.val_split}`, {int(metrics.get('val/samples', 0))} "
             f"samples, grid `{self.cfg.grid.name}` {list(self.cfg.grid.shape)}",
-            f"readout: opacity > {threshold:g} (the checkpoint's stored threshold), "
-            "class = argmax of the Gaussian's logits",
+            f"readout: {rule}, class = argmax of the Gaussian's logits",
         ]
         text = occ3d_report_markdown(metrics, "Img2Occ occupancy, Occ3D protocol", notes)
         (out / "occ3d_metrics.md").write_text(text)
