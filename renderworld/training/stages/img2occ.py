@@ -23,26 +23,21 @@ recomputed with that threshold. Validation during training uses the threshold th
 
 from __future__ import annotations
 
-import copy
 import dataclasses
-import json
 import logging
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from omegaconf import OmegaConf
 from torch import nn
-from torch.utils.data import DataLoader, Dataset, Subset, default_collate
+from torch.utils.data import DataLoader, Dataset, default_collate
 
 from renderworld.constants import OCC3D_CLASSES
-from renderworld.img2occ import Img2Occ, Img2OccConfig, choose_threshold, draw_views
-from renderworld.img2occ.readout import DEFAULT_THRESHOLDS
+from renderworld.img2occ import Img2Occ, Img2OccConfig, draw_views
 from renderworld.training.checkpoint import (
     check_state_dict_keys,
     load_checkpoint,
-    save_checkpoint,
 )
 from renderworld.training.registry import Stage, register_stage
 from renderworld.training.stages.common import (
@@ -51,6 +46,7 @@ from renderworld.training.stages.common import (
     infos_dir,
     occupancy_metrics,
 )
+from renderworld.training.stages.img2occ_threshold import ThresholdMixin, _threshold_options
 
 __all__ = [
     "Img2OccStage",
@@ -87,28 +83,6 @@ def _adjacent(cfg: Any) -> int:
     if isinstance(k, bool) or not isinstance(k, int) or k < 0:
         raise ValueError(f"stage.adjacent_frames: expected an integer k >= 0, got {k!r}")
     return k
-
-
-def _threshold_options(cfg: Any) -> tuple[str, list[float], int | None, bool]:
-    """(criterion, candidates, max_samples, per_class) of ``stage.threshold``, validated."""
-    t = cfg.stage.get("threshold") or {}
-    criterion = str(t.get("criterion", "miou"))
-    if criterion not in ("miou", "iou"):
-        raise ValueError(f"stage.threshold.criterion: expected 'miou' or 'iou', got {criterion!r}")
-    raw = t.get("candidates")
-    candidates = list(DEFAULT_THRESHOLDS) if raw is None else [float(v) for v in raw]
-    if not candidates or not all(0.0 <= v < 1.0 for v in candidates):
-        raise ValueError(f"stage.threshold.candidates: expected values in [0, 1), got {raw!r}")
-    cap = t.get("max_samples")
-    if cap is not None and (isinstance(cap, bool) or not isinstance(cap, int) or cap < 1):
-        raise ValueError(f"stage.threshold.max_samples: expected null or an int >= 1, got {cap!r}")
-    per_class = t.get("per_class", False)
-    if not isinstance(per_class, bool) or (per_class and criterion != "miou"):
-        raise ValueError(
-            f"stage.threshold.per_class: expected true (with criterion miou) or false, got "
-            f"{per_class!r} with criterion {criterion!r}"
-        )
-    return criterion, candidates, cap, per_class
 
 
 def img2occ_config(cfg: Any) -> Img2OccConfig:
@@ -189,11 +163,6 @@ def load_img2occ(path, device: str | torch.device = "cpu") -> tuple[Img2Occ, dic
     return model, ckpt
 
 
-def _is_main() -> bool:
-    dist = torch.distributed
-    return not (dist.is_available() and dist.is_initialized()) or dist.get_rank() == 0
-
-
 def _fmt(value: float | None) -> str:
     return "–" if value is None or value != value else f"{100 * value:.2f}"
 
@@ -225,7 +194,7 @@ def occ3d_report_markdown(metrics: dict[str, float], title: str, notes: list[str
 
 
 @register_stage("img2occ")
-class Img2OccStage(Stage):
+class Img2OccStage(ThresholdMixin, Stage):
     """Img2Occ training and Occ3D-protocol evaluation (see the module docstring)."""
 
     def __init__(self, cfg: Any) -> None:
@@ -296,36 +265,6 @@ class Img2OccStage(Stage):
             num_workers=int(tr.get("num_workers", 0)),
         )
 
-    def _threshold_set(self) -> Dataset:
-        data = img2occ_datasets(self.cfg, self.cfg.dataset.train_split)
-        cap = _threshold_options(self.cfg)[2]
-        if cap is not None and cap < len(data):
-            # Evenly spaced over the split (every scene contributes), deterministic.
-            idx = np.unique(np.linspace(0, len(data) - 1, cap).round().astype(int))
-            data = Subset(data, idx.tolist())
-        return data
-
-    def _choose(self, model: Img2Occ, data: Dataset) -> dict[str, Any]:
-        criterion, candidates, _, per_class = _threshold_options(self.cfg)
-        device = next(model.parameters()).device
-        batches = (self.transfer_batch(b, device) for b in self._loader(data))
-        initial = float(model.occupancy_threshold)
-        value, scores = choose_threshold(model, batches, candidates, criterion, True, per_class)
-        return {
-            "value": value,
-            "per_class": (
-                {c: float(t) for c, t in zip(OCC3D_CLASSES, model.class_thresholds.tolist())}
-                if per_class
-                else None
-            ),
-            "initial": initial,
-            "criterion": criterion,
-            "mask": "camera",
-            "split": str(self.cfg.dataset.train_split),
-            "samples": len(data),
-            "scores": {f"{t:g}": s for t, s in scores.items()},
-        }
-
     def _val_metrics(self, model: nn.Module) -> dict[str, float]:
         if self._val is None:
             return {}
@@ -333,70 +272,6 @@ class Img2OccStage(Stage):
         with torch.no_grad():
             stats = self.evaluate(model, self._loader(self._val))
         return {f"val/{k}": float(v) for k, v in self.compute_metrics(stats).items()}
-
-    def on_train_end(self, model: nn.Module, run_dir: str) -> None:
-        """Rank 0: choose the readout threshold for ``last.pt`` and ``best.pt`` and re-save them.
-
-        Each checkpoint gets the threshold chosen on the training split for its own weights,
-        stored in ``model["occupancy_threshold"]``, a ``threshold`` record (value, criterion,
-        scores per candidate, the validation metrics at the initial threshold) and ``metrics``
-        recomputed on the validation split with it; ``<run_dir>/threshold.json`` sums it up.
-        The in-memory model ends with ``last.pt``'s threshold.
-        """
-        if not _is_main():
-            return
-        ckpt_dir = Path(run_dir) / "checkpoints"
-        data = self._threshold_set()
-        was_training = model.training
-        summary: dict[str, Any] = {}
-        try:
-            last = load_checkpoint(ckpt_dir / "last.pt", expected_stage=self.name)
-            record = self._choose(model, data)
-            last_metrics = self._val_metrics(model)
-            self._resave(ckpt_dir / "last.pt", last, model, record, last_metrics)
-            summary["last.pt"] = {"step": last["step"], **record, "val_metrics": last_metrics}
-            best_path = ckpt_dir / "best.pt"
-            if best_path.is_file():
-                best = load_checkpoint(best_path, expected_stage=self.name)
-                if int(best["step"]) == int(last["step"]):  # same weights: same threshold
-                    best_record, best_metrics, src = record, last_metrics, model
-                else:
-                    src = copy.deepcopy(model)
-                    src.load_state_dict(best["model"], strict=True)
-                    best_record = self._choose(src, data)
-                    best_metrics = self._val_metrics(src)
-                self._resave(best_path, best, src, best_record, best_metrics)
-                summary["best.pt"] = {
-                    "step": best["step"],
-                    **best_record,
-                    "val_metrics": best_metrics,
-                }
-        finally:
-            model.train(was_training)
-        path = Path(run_dir) / "threshold.json"
-        path.write_text(json.dumps(summary, indent=2) + "\n")
-        log.info(
-            "readout threshold chosen on the %s split (%d samples, %s, camera mask): %s; "
-            "val cam/miou with it: %s",
-            self.cfg.dataset.train_split,
-            len(data),
-            summary["last.pt"]["criterion"],
-            {k: v["value"] for k, v in summary.items()},
-            {k: v["val_metrics"].get("val/cam/miou") for k, v in summary.items()},
-        )
-
-    @staticmethod
-    def _resave(path: Path, ckpt: dict, model: Img2Occ, record: dict, metrics: dict) -> None:
-        ckpt = dict(ckpt)
-        state = dict(ckpt["model"])
-        state["occupancy_threshold"] = model.occupancy_threshold.detach().cpu().clone()
-        state["class_thresholds"] = model.class_thresholds.detach().cpu().clone()
-        ckpt["model"] = state
-        record = dict(record, metrics_at_initial=dict(ckpt.get("metrics") or {}))
-        ckpt["threshold"] = record
-        if metrics:
-            ckpt["metrics"] = metrics
-        save_checkpoint(ckpt, path)
 
     # ------------------------------------------------------------------ report
     def on_eval_end(self, model: nn.Module, metrics: dict[str, float], run_dir: str) -> None:

@@ -1,0 +1,162 @@
+"""Readout-threshold selection of the ``img2occ`` stage (a mixin of ``Img2OccStage``).
+
+At the end of training (rank 0) ``choose_threshold`` picks the readout threshold on the
+TRAINING split (criterion ``stage.threshold.criterion``, camera mask; with
+``stage.threshold.per_class`` also one per class) for the weights of ``last.pt`` and,
+separately, of ``best.pt``; each checkpoint is re-written atomically with its thresholds in the
+model state, a ``threshold`` record and its validation metrics recomputed with them.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.utils.data import Dataset, Subset
+
+from renderworld.constants import OCC3D_CLASSES
+from renderworld.img2occ import Img2Occ, choose_threshold
+from renderworld.img2occ.readout import DEFAULT_THRESHOLDS
+from renderworld.training.checkpoint import load_checkpoint, save_checkpoint
+
+__all__ = ["ThresholdMixin"]
+
+log = logging.getLogger("renderworld.training")
+
+
+def _threshold_options(cfg: Any) -> tuple[str, list[float], int | None, bool]:
+    """(criterion, candidates, max_samples, per_class) of ``stage.threshold``, validated."""
+    t = cfg.stage.get("threshold") or {}
+    criterion = str(t.get("criterion", "miou"))
+    if criterion not in ("miou", "iou"):
+        raise ValueError(f"stage.threshold.criterion: expected 'miou' or 'iou', got {criterion!r}")
+    raw = t.get("candidates")
+    candidates = list(DEFAULT_THRESHOLDS) if raw is None else [float(v) for v in raw]
+    if not candidates or not all(0.0 <= v < 1.0 for v in candidates):
+        raise ValueError(f"stage.threshold.candidates: expected values in [0, 1), got {raw!r}")
+    cap = t.get("max_samples")
+    if cap is not None and (isinstance(cap, bool) or not isinstance(cap, int) or cap < 1):
+        raise ValueError(f"stage.threshold.max_samples: expected null or an int >= 1, got {cap!r}")
+    per_class = t.get("per_class", False)
+    if not isinstance(per_class, bool) or (per_class and criterion != "miou"):
+        raise ValueError(
+            f"stage.threshold.per_class: expected true (with criterion miou) or false, got "
+            f"{per_class!r} with criterion {criterion!r}"
+        )
+    return criterion, candidates, cap, per_class
+
+
+def _is_main() -> bool:
+    dist = torch.distributed
+    return not (dist.is_available() and dist.is_initialized()) or dist.get_rank() == 0
+
+
+class ThresholdMixin:
+    """``on_train_end`` threshold selection; needs the Stage's ``cfg``, ``name``, ``_loader``,
+    ``transfer_batch`` and ``_val_metrics``."""
+
+    def _threshold_set(self) -> Dataset:
+        data = _datasets(self.cfg, self.cfg.dataset.train_split)
+        cap = _threshold_options(self.cfg)[2]
+        if cap is not None and cap < len(data):
+            # Evenly spaced over the split (every scene contributes), deterministic.
+            idx = np.unique(np.linspace(0, len(data) - 1, cap).round().astype(int))
+            data = Subset(data, idx.tolist())
+        return data
+
+    def _choose(self, model: Img2Occ, data: Dataset) -> dict[str, Any]:
+        criterion, candidates, _, per_class = _threshold_options(self.cfg)
+        device = next(model.parameters()).device
+        batches = (self.transfer_batch(b, device) for b in self._loader(data))
+        initial = float(model.occupancy_threshold)
+        value, scores = choose_threshold(model, batches, candidates, criterion, True, per_class)
+        return {
+            "value": value,
+            "per_class": (
+                {c: float(t) for c, t in zip(OCC3D_CLASSES, model.class_thresholds.tolist())}
+                if per_class
+                else None
+            ),
+            "initial": initial,
+            "criterion": criterion,
+            "mask": "camera",
+            "split": str(self.cfg.dataset.train_split),
+            "samples": len(data),
+            "scores": {f"{t:g}": s for t, s in scores.items()},
+        }
+
+    def on_train_end(self, model: nn.Module, run_dir: str) -> None:
+        """Rank 0: choose the readout threshold for ``last.pt`` and ``best.pt`` and re-save them.
+
+        Each checkpoint gets the threshold chosen on the training split for its own weights,
+        stored in ``model["occupancy_threshold"]``, a ``threshold`` record (value, criterion,
+        scores per candidate, the validation metrics at the initial threshold) and ``metrics``
+        recomputed on the validation split with it; ``<run_dir>/threshold.json`` sums it up.
+        The in-memory model ends with ``last.pt``'s threshold.
+        """
+        if not _is_main():
+            return
+        ckpt_dir = Path(run_dir) / "checkpoints"
+        data = self._threshold_set()
+        was_training = model.training
+        summary: dict[str, Any] = {}
+        try:
+            last = load_checkpoint(ckpt_dir / "last.pt", expected_stage=self.name)
+            record = self._choose(model, data)
+            last_metrics = self._val_metrics(model)
+            self._resave(ckpt_dir / "last.pt", last, model, record, last_metrics)
+            summary["last.pt"] = {"step": last["step"], **record, "val_metrics": last_metrics}
+            best_path = ckpt_dir / "best.pt"
+            if best_path.is_file():
+                best = load_checkpoint(best_path, expected_stage=self.name)
+                if int(best["step"]) == int(last["step"]):  # same weights: same threshold
+                    best_record, best_metrics, src = record, last_metrics, model
+                else:
+                    src = copy.deepcopy(model)
+                    src.load_state_dict(best["model"], strict=True)
+                    best_record = self._choose(src, data)
+                    best_metrics = self._val_metrics(src)
+                self._resave(best_path, best, src, best_record, best_metrics)
+                summary["best.pt"] = {
+                    "step": best["step"],
+                    **best_record,
+                    "val_metrics": best_metrics,
+                }
+        finally:
+            model.train(was_training)
+        path = Path(run_dir) / "threshold.json"
+        path.write_text(json.dumps(summary, indent=2) + "\n")
+        log.info(
+            "readout threshold chosen on the %s split (%d samples, %s, camera mask): %s; "
+            "val cam/miou with it: %s",
+            self.cfg.dataset.train_split,
+            len(data),
+            summary["last.pt"]["criterion"],
+            {k: v["value"] for k, v in summary.items()},
+            {k: v["val_metrics"].get("val/cam/miou") for k, v in summary.items()},
+        )
+
+    @staticmethod
+    def _resave(path: Path, ckpt: dict, model: Img2Occ, record: dict, metrics: dict) -> None:
+        ckpt = dict(ckpt)
+        state = dict(ckpt["model"])
+        state["occupancy_threshold"] = model.occupancy_threshold.detach().cpu().clone()
+        state["class_thresholds"] = model.class_thresholds.detach().cpu().clone()
+        ckpt["model"] = state
+        record = dict(record, metrics_at_initial=dict(ckpt.get("metrics") or {}))
+        ckpt["threshold"] = record
+        if metrics:
+            ckpt["metrics"] = metrics
+        save_checkpoint(ckpt, path)
+
+
+def _datasets(cfg: Any, split: str) -> Dataset:
+    from renderworld.training.stages.img2occ import img2occ_datasets
+
+    return img2occ_datasets(cfg, split)
