@@ -42,7 +42,7 @@ class Knob:
     """A swept setting: the Hydra key it overrides and how a value is written there."""
 
     key: str
-    kind: str  # "name" (a config-group option), "int", "float", "size" ([h, w] list)
+    kind: str  # "name" (a config-group option), "bool", "int", "float", "size" ([h, w])
     what: str
 
 
@@ -55,6 +55,13 @@ KNOBS: dict[str, dict[str, Knob]] = {
         "views_per_step": Knob("stage.model.views_per_step", "int", "cameras rendered per step"),
         "prune_opacity": Knob(
             "stage.model.prune_opacity", "float", "skip Gaussians below this opacity (0: off)"
+        ),
+        "fine_semantics": Knob(
+            "stage.model.fine_semantics", "bool", "stride-2 per-pixel class head (on/off)"
+        ),
+        "feature_stride": Knob("stage.model.feature_stride", "int", "lifted feature stride"),
+        "carve_weight": Knob(
+            "stage.model.carve_weight", "float", "free-space carving weight (0: off)"
         ),
     },
     "tokenizer": {
@@ -134,6 +141,10 @@ def _override(knob: Knob, name: str, value: Any, where: str) -> str:
         if not isinstance(value, str) or not value:
             raise bad
         return f"{knob.key}={value}"
+    if knob.kind == "bool":
+        if not isinstance(value, bool):
+            raise bad
+        return f"{knob.key}={str(value).lower()}"
     if knob.kind == "int":
         if not isinstance(value, int) or isinstance(value, bool):
             raise bad
@@ -154,6 +165,7 @@ def _override(knob: Knob, name: str, value: Any, where: str) -> str:
 
 _KIND_TEXT = {
     "name": "a config option name (str)",
+    "bool": "true or false",
     "int": "an int",
     "float": "a number",
     "size": "a pair of positive ints [h, w]",

@@ -84,6 +84,23 @@ def test_points_expand_default_first_then_each_knob_value_with_the_same_budget()
     assert pts[3].eval_overrides[-1] == "stage.model.latent_shape=[50,50]"
 
 
+def test_img2occ_accuracy_knobs_write_their_overrides():
+    img = {
+        "experiment": "img2occ_mini",
+        "budget": {"max_steps": 10},
+        "knobs": {"fine_semantics": [False], "feature_stride": [4], "carve_weight": [0.3]},
+    }
+    pts = expand_points(_preset(img2occ=img))
+    assert [p.overrides[-1] for p in pts[1:]] == [
+        "stage.model.fine_semantics=false",
+        "stage.model.feature_stride=4",
+        "stage.model.carve_weight=0.3",
+    ]
+    assert pts[1].point_id == "img2occ__fine_semantics-False"
+    with pytest.raises(TypeError, match="expected true or false for knob 'fine_semantics'"):
+        expand_points(_preset(img2occ={**img, "knobs": {"fine_semantics": [1]}}))
+
+
 def test_upstream_checkpoints_go_to_train_and_eval(tmp_path):
     ckpt = tmp_path / "tok.pt"
     ckpt.write_bytes(b"x")
