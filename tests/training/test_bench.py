@@ -196,7 +196,7 @@ def fake_root(tmp_path):
     return tmp_path / "data", tok
 
 
-@pytest.mark.parametrize("preset, count", [("quick", 12), ("full", 24)])
+@pytest.mark.parametrize("preset, count", [("quick", 13), ("full", 27)])
 def test_shipped_presets_expand(fake_root, preset, count):
     data, tok = fake_root
     cfg = compose_cfg(
