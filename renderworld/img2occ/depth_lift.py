@@ -28,6 +28,7 @@ __all__ = [
     "depth_cdf",
     "interp_cdf",
     "image_label_losses",
+    "sample_at_labels",
     "occupancy_3d_loss",
 ]
 
@@ -141,6 +142,31 @@ def _label_grid(k_feat: torch.Tensor, k_label: torch.Tensor, hw_label, hw_feat) 
     return torch.stack([2.0 * x / w_f - 1.0, 2.0 * y / h_f - 1.0], dim=-1)
 
 
+def sample_at_labels(
+    maps: torch.Tensor, k_map: torch.Tensor, k_label: torch.Tensor, label_hw
+) -> torch.Tensor:
+    """Bilinear samples of per-camera maps at every label pixel's centre.
+
+    Args:
+        maps: [B, C, F, h, w] per-camera maps (e.g. logits).
+        k_map: [B, C, 3, 3] intrinsics of the maps.
+        k_label: [B, C, 3, 3] intrinsics of the label maps.
+        label_hw: (H_r, W_r) of the label maps.
+
+    Returns:
+        [B·C, H_r, W_r, F].
+    """
+    flat = maps.flatten(0, 1)
+    grid = _label_grid(
+        k_map.flatten(0, 1).to(flat.dtype),
+        k_label.flatten(0, 1).to(flat.dtype),
+        label_hw,
+        flat.shape[-2:],
+    )
+    s = F.grid_sample(flat, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    return s.permute(0, 2, 3, 1)
+
+
 def image_label_losses(
     logits: torch.Tensor,
     k_feat: torch.Tensor,
@@ -178,15 +204,7 @@ def image_label_losses(
             f"depth/semantics: expected equal [{b}, {c}, H_r, W_r] shapes, got "
             f"{tuple(depth.shape)} and {tuple(semantics.shape)}"
         )
-    flat = logits.flatten(0, 1)
-    grid = _label_grid(
-        k_feat.flatten(0, 1).to(flat.dtype),
-        k_label.flatten(0, 1).to(flat.dtype),
-        depth.shape[-2:],
-        flat.shape[-2:],
-    )
-    s = F.grid_sample(flat, grid, mode="bilinear", padding_mode="border", align_corners=False)
-    s = s.permute(0, 2, 3, 1)  # [N, H_r, W_r, D + K]
+    s = sample_at_labels(logits, k_feat, k_label, depth.shape[-2:])  # [N, H_r, W_r, D + K]
     dt = depth.flatten(0, 1).to(device=s.device)
     target_d = depth_bin_targets(dt, edges.to(dt.device))
     sem = semantics.flatten(0, 1).to(s.device).long()

@@ -15,8 +15,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from renderworld.constants import FREE_ID, NUM_SEMANTIC_CLASSES
-from renderworld.img2occ.depth_lift import _label_grid, _masked_mean
+from renderworld.img2occ.depth_lift import _masked_mean, sample_at_labels
 from renderworld.img2occ.encoder import _norm
+from renderworld.img2occ.losses import balanced_class_weights
 
 __all__ = ["FineSemanticHead", "pixel_class_loss"]
 
@@ -80,24 +81,13 @@ def pixel_class_loss(
         )
     if not (0.0 <= float(balance) <= 1.0):
         raise ValueError(f"balance: expected a value in [0, 1], got {balance!r}")
-    flat = logits.flatten(0, 1)
-    grid = _label_grid(
-        k_map.flatten(0, 1).to(flat.dtype),
-        k_label.flatten(0, 1).to(flat.dtype),
-        semantics.shape[-2:],
-        flat.shape[-2:],
-    )
-    s = F.grid_sample(flat, grid, mode="bilinear", padding_mode="border", align_corners=False)
-    s = s.permute(0, 2, 3, 1).reshape(-1, k)
+    s = sample_at_labels(logits, k_map, k_label, semantics.shape[-2:]).reshape(-1, k)
     sem = semantics.flatten(0, 1).to(s.device).long().reshape(-1)
     target = torch.where((sem >= 0) & (sem < FREE_ID), sem, torch.full_like(sem, -1))
     ce = F.cross_entropy(s, target, reduction="none", ignore_index=-1)
     valid = target >= 0
     weights = None
-    if balance > 0 and bool(valid.any()):
-        counts = torch.bincount(target[valid], minlength=k).to(s.dtype)
-        freq = counts / counts.sum()
-        per_class = torch.where(counts > 0, freq.clamp_min(1e-12) ** -float(balance), 0.0)
-        per_class = per_class / ((per_class * counts).sum() / counts.sum())
+    if balance > 0:
+        per_class = balanced_class_weights(target[valid], balance).to(s.dtype)
         weights = per_class[target.clamp_min(0)]
     return _masked_mean(ce, valid, weights)
