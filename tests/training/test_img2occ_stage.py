@@ -287,3 +287,48 @@ def test_3d_supervised_depth_aware_stage_trains(converted, tmp_path):
     assert math.isfinite(metrics["train/loss"]) and math.isfinite(metrics["val/cam/iou"])
     model, _ = load_img2occ(tmp_path / "checkpoints" / "last.pt")
     assert model.cfg.supervision == "3d" and model.cfg.depth_bins == 8
+
+
+def test_per_class_thresholds_are_saved_and_used_by_eval_and_export(trained, tmp_path):
+    # Re-run the end-of-training selection with stage.threshold.per_class=true on a copy of
+    # the trained run, then evaluate and export from it as a user would.
+    import shutil
+
+    from renderworld.training.stages.img2occ import Img2OccStage
+
+    root, infos, run, _ = trained
+    copy = tmp_path / "run"
+    shutil.copytree(run / "checkpoints", copy / "checkpoints")
+    cfg = compose_cfg(
+        [*stage_overrides(root, infos), f"run_dir={copy}", "stage.threshold.per_class=true"]
+    )
+    stage = Img2OccStage(cfg)
+    stage.build_datasets(cfg)
+    model, _ = load_img2occ(copy / "checkpoints" / "last.pt")
+    stage.on_train_end(model, str(copy))
+    ckpt = load_checkpoint(copy / "checkpoints" / "last.pt", "img2occ")
+    per_class = ckpt["threshold"]["per_class"]
+    assert set(per_class) == set(OCC3D_CLASSES[:-1])
+    assert all(t in CANDIDATES for t in per_class.values())
+    assert ckpt["model"]["class_thresholds"].tolist() == pytest.approx(list(per_class.values()))
+    out = tmp_path / "eval"
+    proc = subprocess.run(
+        [PYTHON, EVAL, *stage_overrides(root, infos), f"ckpt={copy / 'checkpoints' / 'last.pt'}",
+         f"run_dir={out}"],
+        cwd=tmp_path, env=subprocess_env(), capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    table = (out / "occ3d_metrics.md").read_text()
+    assert "opacity > the stored per-class threshold of the argmax class (others " in table
+    metrics = json.loads((out / "eval_metrics.json").read_text())
+    assert metrics["val/cam/miou"] == pytest.approx(ckpt["metrics"]["val/cam/miou"], rel=1e-9)
+    pseudo = tmp_path / "pseudo"
+    proc = subprocess.run(
+        [PYTHON, EXPORT, f"ckpt={copy / 'checkpoints' / 'last.pt'}", f"data_root={root}",
+         f"infos_dir={infos}", f"out={pseudo}", "progress=false"],
+        cwd=tmp_path, env=subprocess_env(), capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "readout opacity > the per-class thresholds" in proc.stdout
+    info = json.loads((pseudo / "export_info.json").read_text())
+    assert info["class_thresholds"] == pytest.approx(per_class)

@@ -33,7 +33,9 @@ class ExportSummary:
         out_dir: the output root (``gts/`` inside it).
         files_per_split: {split: labels.npz files written}.
         step: training step of the checkpoint.
-        threshold: the readout opacity threshold used.
+        threshold: the single readout opacity threshold.
+        class_thresholds: {class name: threshold} when the checkpoint holds per-class
+            thresholds (they are the ones used), else None.
         grid: grid name and shape of the labels.
         class_fractions: {class name: fraction of all written voxels}, free included.
     """
@@ -44,6 +46,7 @@ class ExportSummary:
     threshold: float
     grid: str
     class_fractions: dict[str, float] = field(default_factory=dict)
+    class_thresholds: dict[str, float] | None = None
 
     def __str__(self) -> str:
         total = sum(self.files_per_split.values())
@@ -55,7 +58,8 @@ class ExportSummary:
         return (
             f"exported {total} samples {self.files_per_split} to {self.out_dir / 'gts'} "
             f"(grid {self.grid}, checkpoint step {self.step}, readout opacity > "
-            f"{self.threshold:g}); occupied voxels {100 * occupied:.2f} %, most frequent: "
+            + ("the per-class thresholds" if self.class_thresholds else f"{self.threshold:g}")
+            + f"); occupied voxels {100 * occupied:.2f} %, most frequent: "
             + ", ".join(f"{k} {100 * v:.2f} %" for v, k in top)
         )
 
@@ -152,6 +156,11 @@ def export_pseudo_labels(
         threshold=float(model.occupancy_threshold),
         grid=f"{grid.name} {list(grid.shape)}",
         class_fractions=fractions,
+        class_thresholds=(
+            dict(zip(OCC3D_CLASSES, model.class_thresholds.tolist()))
+            if bool((model.class_thresholds >= 0).all())
+            else None
+        ),
     )
     info = {
         "checkpoint": str(Path(ckpt).resolve()),
@@ -159,6 +168,7 @@ def export_pseudo_labels(
         "infos_dir": str(folder.resolve()),
         "step": summary.step,
         "threshold": summary.threshold,
+        "class_thresholds": summary.class_thresholds,
         "grid": {"name": grid.name, "shape": list(grid.shape)},
         "files_per_split": counts,
         "class_fractions": fractions,

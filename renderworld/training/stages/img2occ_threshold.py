@@ -79,7 +79,7 @@ class ThresholdMixin:
         return {
             "value": value,
             "per_class": (
-                {c: float(t) for c, t in zip(OCC3D_CLASSES, model.class_thresholds.tolist())}
+                {c: round(t, 6) for c, t in zip(OCC3D_CLASSES, model.class_thresholds.tolist())}
                 if per_class
                 else None
             ),
