@@ -28,6 +28,22 @@ def _size(name: str, value) -> tuple[int, int]:
     return (int(value[0]), int(value[1]))
 
 
+#: Loss weights: each must be a finite number >= 0 (0 turns its term off).
+_WEIGHTS = (
+    "semantic_weight",
+    "depth_weight",
+    "depth_l1_weight",
+    "ray_weight",
+    "carve_weight",
+    "adjacent_weight",
+    "lift_depth_weight",
+    "lift_semantic_weight",
+    "fine_semantic_weight",
+    "occupancy_3d_weight",
+    "semantic_3d_weight",
+)
+
+
 @dataclass
 class Img2OccConfig:
     """Img2Occ hyper-parameters.
@@ -202,14 +218,7 @@ class Img2OccConfig:
             v = getattr(self, name)
             if v is not None:
                 _positive_int(name, v)
-        for name in (
-            "semantic_weight",
-            "depth_weight",
-            "depth_l1_weight",
-            "ray_weight",
-            "carve_weight",
-            "adjacent_weight",
-        ):
+        for name in _WEIGHTS:
             v = getattr(self, name)
             if not (math.isfinite(float(v)) and float(v) >= 0):
                 raise ValueError(f"{name}: expected a finite weight >= 0, got {v!r}")
@@ -227,30 +236,16 @@ class Img2OccConfig:
         if len(rng) != 2 or not (0 < rng[0] < rng[1]):
             raise ValueError(f"depth_range: expected 0 < d_min < d_max, got {self.depth_range!r}")
         self.depth_range = rng
-        if not (0.0 <= float(self.class_balance) <= 1.0):
-            raise ValueError(
-                f"class_balance: expected a value in [0, 1], got {self.class_balance!r}"
-            )
+        for name in ("class_balance", "fine_class_balance"):
+            v = getattr(self, name)
+            if not (0.0 <= float(v) <= 1.0):
+                raise ValueError(f"{name}: expected a value in [0, 1], got {v!r}")
         if not isinstance(self.fine_semantics, bool):
             raise ValueError(f"fine_semantics: expected a bool, got {self.fine_semantics!r}")
         if self.fine_semantics and not self.depth_bins:
             raise ValueError("fine_semantics: needs depth-aware lifting (depth_bins >= 2)")
-        if not (0.0 <= float(self.fine_class_balance) <= 1.0):
-            raise ValueError(
-                f"fine_class_balance: expected a value in [0, 1], got {self.fine_class_balance!r}"
-            )
         if self.supervision not in ("2d", "3d"):
             raise ValueError(f"supervision: expected '2d' or '3d', got {self.supervision!r}")
-        for name in (
-            "lift_depth_weight",
-            "lift_semantic_weight",
-            "fine_semantic_weight",
-            "occupancy_3d_weight",
-            "semantic_3d_weight",
-        ):
-            v = getattr(self, name)
-            if not (math.isfinite(float(v)) and float(v) >= 0):
-                raise ValueError(f"{name}: expected a finite weight >= 0, got {v!r}")
         if not (0 < self.prob_eps < 1e-2):
             raise ValueError(f"prob_eps: expected a value in (0, 0.01), got {self.prob_eps!r}")
 

@@ -25,6 +25,21 @@ INITIAL = 0.99  # readout threshold before training ends: everything reads as fr
 CANDIDATES = [0.05, 0.1, 0.2, 0.3]
 
 
+def _train_one_thread(cfg) -> dict:
+    """``train(cfg)`` with seed 0 on one intra-op thread (restored after).
+
+    Module fixtures run before the function-scoped single-thread fixture, so this pins it too:
+    two OpenMP threads on a loaded 2-core machine make these tiny steps several times slower.
+    """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        torch.manual_seed(0)
+        return train(cfg)
+    finally:
+        torch.set_num_threads(threads)
+
+
 @pytest.fixture(scope="module")
 def converted(tiny_dataset, tmp_path_factory):
     out = tmp_path_factory.mktemp("img2occ_infos")
@@ -76,15 +91,7 @@ def trained(converted, tmp_path_factory):
             "optimizer.lr=2e-3",
         ]
     )
-    # Module fixtures run before the function-scoped single-thread fixture: pin it here too
-    # (two OpenMP threads on a loaded 2-core machine make these tiny steps several times slower).
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        torch.manual_seed(0)
-        metrics = train(cfg)
-    finally:
-        torch.set_num_threads(threads)
+    metrics = _train_one_thread(cfg)
     return root, infos, run, metrics
 
 
@@ -277,13 +284,7 @@ def test_3d_supervised_depth_aware_stage_trains(converted, tmp_path):
             "trainer.monitor_mode=max",
         ]
     )
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        torch.manual_seed(0)
-        metrics = train(cfg)
-    finally:
-        torch.set_num_threads(threads)
+    metrics = _train_one_thread(cfg)
     assert math.isfinite(metrics["train/loss"]) and math.isfinite(metrics["val/cam/iou"])
     model, _ = load_img2occ(tmp_path / "checkpoints" / "last.pt")
     assert model.cfg.supervision == "3d" and model.cfg.depth_bins == 8

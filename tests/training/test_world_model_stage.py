@@ -54,12 +54,10 @@ def _data(converted) -> list[str]:
     return ["grid=coarse", "trainer=cpu", f"dataset.data_root={root}", f"stage.infos_dir={infos}"]
 
 
-@pytest.fixture(scope="module")
-def tokenizer_ckpt(converted, tmp_path_factory):
-    """A tiny AM-VAE trained for 2 steps through the tokenizer stage's own checkpoint format."""
-    run = tmp_path_factory.mktemp("tok") / "run"
+def _tiny_tokenizer(converted, run, *extra: str):
+    """Train a tiny AM-VAE for 2 steps into ``run``; its ``last.pt``."""
     cfg = compose_cfg([
-        "stage=tokenizer", *_data(converted), f"run_dir={run}", *QUIET,
+        "stage=tokenizer", *_data(converted), f"run_dir={run}", *QUIET, *extra,
         "trainer.max_steps=2", "trainer.batch_size=2", "trainer.val_every=0",
         "trainer.monitor=val/miou", "trainer.monitor_mode=max",
         "stage.model.latent_channels=8", "stage.model.codebook_size=32",
@@ -68,6 +66,12 @@ def tokenizer_ckpt(converted, tmp_path_factory):
     ])  # fmt: skip
     train(cfg)
     return run / "checkpoints" / "last.pt"
+
+
+@pytest.fixture(scope="module")
+def tokenizer_ckpt(converted, tmp_path_factory):
+    """A tiny AM-VAE trained for 2 steps through the tokenizer stage's own checkpoint format."""
+    return _tiny_tokenizer(converted, tmp_path_factory.mktemp("tok") / "run")
 
 
 @pytest.fixture(scope="module")
@@ -463,17 +467,7 @@ def test_other_stages_reject_the_world_model_eval_keys(converted, tokenizer_ckpt
 @pytest.fixture(scope="module")
 def other_tokenizer_ckpt(converted, tmp_path_factory):
     """A second tiny tokenizer with the same codebooks and latent grid, other weights (seed 1)."""
-    run = tmp_path_factory.mktemp("tok2") / "run"
-    cfg = compose_cfg([
-        "stage=tokenizer", *_data(converted), f"run_dir={run}", *QUIET, "seed=1",
-        "trainer.max_steps=2", "trainer.batch_size=2", "trainer.val_every=0",
-        "trainer.monitor=val/miou", "trainer.monitor_mode=max",
-        "stage.model.latent_channels=8", "stage.model.codebook_size=32",
-        "stage.model.base_channels=8", "stage.model.num_res_blocks=1",
-        "stage.model.attention=false",
-    ])  # fmt: skip
-    train(cfg)
-    return run / "checkpoints" / "last.pt"
+    return _tiny_tokenizer(converted, tmp_path_factory.mktemp("tok2") / "run", "seed=1")
 
 
 def test_token_cache_separates_tokenizers(wm_overrides, other_tokenizer_ckpt, tmp_path):
