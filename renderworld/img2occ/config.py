@@ -35,6 +35,7 @@ _WEIGHTS = (
     "depth_l1_weight",
     "ray_weight",
     "carve_weight",
+    "backproject_weight",
     "adjacent_weight",
     "lift_depth_weight",
     "lift_semantic_weight",
@@ -96,6 +97,15 @@ class Img2OccConfig:
             voxel at its surface; ``renderworld.img2occ.carving``). Not in the paper (0 =
             paper): rendered losses let half-transparent Gaussians fill seen free space.
         carve_margin: metres (> 0), see ``carve_weight``.
+        backproject_weight: weight of the voxel loss (opacity BCE + class CE) against the
+            targets back-projected from the 2-D label maps (``renderworld.img2occ.
+            backproject``): voxels holding labelled pixels' points are occupied with their
+            most frequent class, voxels the depth maps see through (``carve_margin``) are
+            free. 0 = off (the paper). Not in the paper; no 3-D label is read.
+        backproject_adjacent: also back-project the adjacent keyframes' points of static
+            classes (needs ``adjacent_frames`` in the batch).
+        backproject_class_balance: p in [0, 1]: the back-projected targets weigh each
+            voxel by its class's frequency among them to the power -p; 0 = unweighted.
         adjacent_weight: weight of the adjacent-frame losses relative to the keyframe's.
         near: rasterizer near plane, metres (camera z).
         far: rasterizer far plane, metres.
@@ -151,6 +161,9 @@ class Img2OccConfig:
     ray_weight: float = 0.0
     carve_weight: float = 0.0
     carve_margin: float = 1.6
+    backproject_weight: float = 0.0
+    backproject_adjacent: bool = False
+    backproject_class_balance: float = 0.0
     adjacent_weight: float = 0.5
     near: float = 0.1
     far: float = 100.0
@@ -236,7 +249,7 @@ class Img2OccConfig:
         if len(rng) != 2 or not (0 < rng[0] < rng[1]):
             raise ValueError(f"depth_range: expected 0 < d_min < d_max, got {self.depth_range!r}")
         self.depth_range = rng
-        for name in ("class_balance", "fine_class_balance"):
+        for name in ("class_balance", "fine_class_balance", "backproject_class_balance"):
             v = getattr(self, name)
             if not (0.0 <= float(v) <= 1.0):
                 raise ValueError(f"{name}: expected a value in [0, 1], got {v!r}")
@@ -244,6 +257,10 @@ class Img2OccConfig:
             raise ValueError(f"fine_semantics: expected a bool, got {self.fine_semantics!r}")
         if self.fine_semantics and not self.depth_bins:
             raise ValueError("fine_semantics: needs depth-aware lifting (depth_bins >= 2)")
+        if not isinstance(self.backproject_adjacent, bool):
+            raise ValueError(
+                f"backproject_adjacent: expected a bool, got {self.backproject_adjacent!r}"
+            )
         if self.supervision not in ("2d", "3d"):
             raise ValueError(f"supervision: expected '2d' or '3d', got {self.supervision!r}")
         if not (0 < self.prob_eps < 1e-2):

@@ -239,6 +239,7 @@ def occupancy_3d_loss(
     occ: torch.Tensor,
     mask: torch.Tensor,
     eps: float = 1e-6,
+    weights: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Voxel losses against Occ3D GT (the "3d" upper reference), inside ``mask``.
 
@@ -248,6 +249,7 @@ def occupancy_3d_loss(
         occ: [B, X, Y, Z] uint8/int64 Occ3D ids 0..17 (``FREE_ID`` = free), X·Y·Z = V.
         mask: [B, X, Y, Z] bool voxels that count (the camera mask).
         eps: clamp of the opacities inside the logs.
+        weights: optional [B, X, Y, Z] per-voxel weights (> 0) of both means.
 
     Returns:
         ``(bce, ce)``: binary cross-entropy of the opacity against occupied (id < FREE_ID)
@@ -274,6 +276,7 @@ def occupancy_3d_loss(
         torch.where(occupied, target, torch.zeros_like(target)).reshape(-1),
         reduction="none",
     )
-    return _masked_mean(bce.reshape(-1), m.reshape(-1)), _masked_mean(
-        ce, (m & occupied).reshape(-1)
+    w = None if weights is None else weights.reshape(-1).to(bce)
+    return _masked_mean(bce.reshape(-1), m.reshape(-1), w), _masked_mean(
+        ce, (m & occupied).reshape(-1), w
     )

@@ -18,6 +18,7 @@ from torch import nn
 
 from renderworld.constants import NUM_SEMANTIC_CLASSES
 from renderworld.geometry import VoxelGrid, scale_intrinsics
+from renderworld.img2occ.backproject import backprojected_loss
 from renderworld.img2occ.carving import free_space_loss, free_space_targets
 from renderworld.img2occ.config import Img2OccConfig
 from renderworld.img2occ.depth_lift import (
@@ -73,7 +74,7 @@ class Img2Occ(nn.Module):
             self.fine_head = FineSemanticHead(self.encoder.fine_channels, self.cfg.feature_channels)
             # Weight of the lifted fine class distribution added to the Gaussians' logits.
             self.semantic_skip = nn.Parameter(torch.tensor(1.0))
-        grid = VoxelGrid(self.cfg.grid)
+        self.grid = grid = VoxelGrid(self.cfg.grid)
         centres = torch.as_tensor(grid.centres(), dtype=torch.float32).view(-1, 3)
         self.register_buffer("centres", centres, persistent=False)
         lo = torch.as_tensor(grid.range_min, dtype=torch.float32)
@@ -330,8 +331,8 @@ class Img2Occ(nn.Module):
         }
         if output.views.moments is not None:
             logs["loss_ray"] = float(ray.detach())
+        g = output.gaussians
         if cfg.carve_weight > 0:
-            g = output.gaussians
             free = free_space_targets(
                 self.centres, batch["cam_to_ego"], batch["render_intrinsics"],
                 batch["depth"], cfg.carve_margin, near=cfg.near,
@@ -339,6 +340,13 @@ class Img2Occ(nn.Module):
             carve = free_space_loss(g.opacities, free, cfg.prob_eps)
             total = total + cfg.carve_weight * carve
             logs.update(loss_carve=float(carve.detach()), carved=float(free.float().mean()))
+        if cfg.backproject_weight > 0:
+            bce, ce, _ = backprojected_loss(
+                g.opacities, g.logits, self.centres, self.grid, batch, cfg.carve_margin,
+                cfg.near, cfg.backproject_adjacent, cfg.prob_eps, cfg.backproject_class_balance,
+            )  # fmt: skip
+            total = total + cfg.backproject_weight * (bce + ce)
+            logs.update(loss_bp_occ=float(bce.detach()), loss_bp_sem=float(ce.detach()))
         if output.adj_views is not None:
             self._check_batch(batch, ("adj_depth", "adj_semantics"))
             a_total, a_sem, a_dep, _, _ = self._view_losses(

@@ -63,6 +63,9 @@ KNOBS: dict[str, dict[str, Knob]] = {
         "carve_weight": Knob(
             "stage.model.carve_weight", "float", "free-space carving weight (0: off)"
         ),
+        "backproject_weight": Knob(
+            "stage.model.backproject_weight", "float", "back-projected voxel targets (0: off)"
+        ),
     },
     "tokenizer": {
         "latent_size": Knob("stage.model.latent_shape", "size", "token grid [h, w]"),

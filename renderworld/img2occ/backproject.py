@@ -1,0 +1,169 @@
+"""Voxel targets back-projected from the 2-D LiDAR label maps (an option, not in the paper).
+
+A label pixel with depth ``d`` and class ``k`` is a 3-D point ``d · K⁻¹ [u, v, 1]`` in its
+camera, i.e. a point of the LiDAR sweep it was projected from. Putting those points back
+into the voxel grid gives sparse voxel targets without any 3-D label: a voxel holding points
+is occupied, with their most frequent class; a voxel the depth maps see through is free
+(``renderworld.img2occ.carving.free_space_targets``). The loss on them is the "3d" voxel
+loss (``occupancy_3d_loss``) restricted to those voxels. Rendering losses compare blended
+pixels only, so they leave the per-voxel opacity and class ambiguous (a half-transparent
+veil renders almost like a surface); these targets pin them where the 2-D labels say.
+
+Frames and units: camera z in metres (DESIGN.md §3), ego frame of the keyframe, voxels in
+row-major ``[x, y, z]`` order.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from renderworld.constants import FREE_ID, NUM_SEMANTIC_CLASSES, OCC3D_CLASSES
+from renderworld.img2occ.carving import free_space_targets
+from renderworld.img2occ.depth_lift import occupancy_3d_loss
+from renderworld.img2occ.losses import balanced_class_weights
+
+__all__ = ["STATIC_CLASS_IDS", "backproject_labels", "backprojected_loss"]
+
+#: Classes that do not move between keyframes: adjacent frames' points of these classes
+#: land where they are in the keyframe (the ego poses align them); a moving car's would not.
+STATIC_CLASS_IDS: tuple[int, ...] = tuple(
+    OCC3D_CLASSES.index(n)
+    for n in (
+        "barrier",
+        "traffic_cone",
+        "driveable_surface",
+        "other_flat",
+        "sidewalk",
+        "terrain",
+        "manmade",
+        "vegetation",
+    )
+)
+
+
+def backproject_labels(
+    depth: torch.Tensor,
+    semantics: torch.Tensor,
+    intrinsics: torch.Tensor,
+    cam_to_ego: torch.Tensor,
+    range_min,
+    voxel_size,
+    shape,
+    classes=None,
+) -> torch.Tensor:
+    """Most frequent class of the labelled pixels' 3-D points in each voxel.
+
+    Args:
+        depth: [B, C, H, W] LiDAR depth maps, metres camera z (0 = no point).
+        semantics: [B, C, H, W] int ids 0..16 (255 or ``FREE_ID`` = no label).
+        intrinsics: [B, C, 3, 3] intrinsics of those maps (pixels).
+        cam_to_ego: [B, C, 4, 4] camera → (keyframe) ego transforms.
+        range_min: (3,) grid lower corner, metres, ego frame.
+        voxel_size: (3,) metres.
+        shape: (X, Y, Z) voxels.
+        classes: optional iterable of class ids; other labels are ignored.
+
+    Returns:
+        [B, V] int64: the class (ties → lower id), ``FREE_ID`` where no point fell.
+    """
+    b, c, h, w = depth.shape
+    if semantics.shape != depth.shape:
+        raise ValueError(
+            f"semantics: expected the depth maps' shape {tuple(depth.shape)}, got "
+            f"{tuple(semantics.shape)}"
+        )
+    if intrinsics.shape != (b, c, 3, 3) or cam_to_ego.shape != (b, c, 4, 4):
+        raise ValueError(
+            f"intrinsics/cam_to_ego: expected [{b}, {c}, 3, 3] and [{b}, {c}, 4, 4], got "
+            f"{tuple(intrinsics.shape)} and {tuple(cam_to_ego.shape)}"
+        )
+    nx, ny, nz = (int(n) for n in shape)
+    n_vox, k = nx * ny * nz, NUM_SEMANTIC_CLASSES
+    dev, dt = depth.device, torch.float32
+    v, u = torch.meshgrid(
+        torch.arange(h, dtype=dt, device=dev) + 0.5,
+        torch.arange(w, dtype=dt, device=dev) + 0.5,
+        indexing="ij",
+    )
+    pix = torch.stack([u, v, torch.ones_like(u)], 0)  # [3, H, W]
+    rays = torch.einsum("bcij,jhw->bcihw", torch.linalg.inv(intrinsics.to(dev, dt)), pix)
+    pts = rays * depth.to(dt)[:, :, None]  # [B, C, 3, H, W] camera frame
+    pose = cam_to_ego.to(dev, dt)
+    pts = torch.einsum("bcij,bcjhw->bcihw", pose[..., :3, :3], pts) + pose[..., :3, 3, None, None]
+    lo = torch.as_tensor(range_min, dtype=dt, device=dev).view(1, 1, 3, 1, 1)
+    size = torch.as_tensor(voxel_size, dtype=dt, device=dev).view(1, 1, 3, 1, 1)
+    ijk = torch.floor((pts - lo) / size).long()
+    dims = torch.tensor([nx, ny, nz], device=dev).view(1, 1, 3, 1, 1)
+    sem = semantics.to(dev).long()
+    ok = (depth > 0) & (sem >= 0) & (sem < FREE_ID) & ((ijk >= 0) & (ijk < dims)).all(2)
+    if classes is not None:
+        allowed = torch.zeros(256, dtype=torch.bool, device=dev)
+        allowed[torch.as_tensor(list(classes), dtype=torch.long, device=dev)] = True
+        ok &= allowed[sem.clamp(0, 255)]
+    flat = (ijk[:, :, 0] * ny + ijk[:, :, 1]) * nz + ijk[:, :, 2]
+    flat = flat + (torch.arange(b, device=dev) * n_vox).view(b, 1, 1, 1)
+    counts = torch.bincount(flat[ok] * k + sem[ok], minlength=b * n_vox * k).view(b, n_vox, k)
+    cls = counts.argmax(-1)  # first maximum: ties go to the lower id
+    return torch.where(counts.sum(-1) > 0, cls, torch.full_like(cls, FREE_ID))
+
+
+def backprojected_loss(
+    opacities: torch.Tensor,
+    logits: torch.Tensor,
+    centres: torch.Tensor,
+    grid,
+    batch: dict,
+    margin: float,
+    near: float,
+    adjacent: bool = False,
+    eps: float = 1e-6,
+    class_balance: float = 0.0,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Opacity BCE and class CE against the back-projected voxel targets.
+
+    Args:
+        opacities: [B, V] in (0, 1).
+        logits: [B, V, K] class logits.
+        centres: [V, 3] voxel centres, metres, ego frame.
+        grid: a :class:`renderworld.geometry.VoxelGrid`.
+        batch: the training batch (keyframe ``depth``, ``semantics``, ``cam_to_ego``,
+            ``render_intrinsics``; with ``adjacent`` also the ``adj_*`` views).
+        margin: free-space carving margin, metres (voxels seen ``margin`` in front of a
+            pixel's depth are free).
+        near: voxel centres at camera z <= near are not seen.
+        adjacent: add the adjacent keyframes' points of ``STATIC_CLASS_IDS``.
+        eps: clamp of the opacities inside the logs.
+        class_balance: p in [0, 1]: each target voxel weighs (its class's share of this
+            batch's target voxels, free included) ** -p, mean weight 1; 0 = unweighted.
+
+    Returns:
+        ``(bce, ce, targets)``: the two scalar losses (0 with a graph when nothing counts)
+        and the [B, V] targets (class id, ``FREE_ID`` free, -1 unknown).
+    """
+    geo = (grid.range_min, grid.voxel_size, grid.shape)
+    occ = backproject_labels(
+        batch["depth"], batch["semantics"], batch["render_intrinsics"], batch["cam_to_ego"], *geo
+    )
+    if adjacent and "adj_depth" in batch:
+        adj = backproject_labels(
+            batch["adj_depth"], batch["adj_semantics"], batch["adj_render_intrinsics"],
+            batch["adj_cam_to_ego"], *geo, classes=STATIC_CLASS_IDS,
+        )  # fmt: skip
+        occ = torch.where(occ == FREE_ID, adj, occ)  # the keyframe's own points win
+    free = free_space_targets(
+        centres, batch["cam_to_ego"], batch["render_intrinsics"], batch["depth"], margin, near
+    )
+    hit = occ != FREE_ID
+    mask = hit | free
+    b = opacities.shape[0]
+    weights = None
+    if class_balance > 0:
+        labels = torch.where(mask, occ, torch.full_like(occ, 255))
+        weights = balanced_class_weights(labels, class_balance)[labels.clamp(max=FREE_ID)]
+    shape = (b, *grid.shape)
+    bce, ce = occupancy_3d_loss(
+        opacities, logits, occ.view(shape), mask.view(shape), eps,
+        None if weights is None else weights.view(shape),
+    )  # fmt: skip
+    targets = torch.where(mask, occ, torch.full_like(occ, -1))
+    return bce, ce, targets
