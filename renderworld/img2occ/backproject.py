@@ -15,9 +15,12 @@ row-major ``[x, y, z]`` order.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from renderworld.constants import FREE_ID, NUM_SEMANTIC_CLASSES, OCC3D_CLASSES
+from renderworld.geometry import VoxelGrid
 from renderworld.img2occ.carving import free_space_targets
 from renderworld.img2occ.depth_lift import occupancy_3d_loss
 from renderworld.img2occ.losses import balanced_class_weights
@@ -46,9 +49,7 @@ def backproject_labels(
     semantics: torch.Tensor,
     intrinsics: torch.Tensor,
     cam_to_ego: torch.Tensor,
-    range_min,
-    voxel_size,
-    shape,
+    grid: VoxelGrid,
     classes=None,
 ) -> torch.Tensor:
     """Most frequent class of the labelled pixels' 3-D points in each voxel.
@@ -58,9 +59,7 @@ def backproject_labels(
         semantics: [B, C, H, W] int ids 0..16 (255 or ``FREE_ID`` = no label).
         intrinsics: [B, C, 3, 3] intrinsics of those maps (pixels).
         cam_to_ego: [B, C, 4, 4] camera → (keyframe) ego transforms.
-        range_min: (3,) grid lower corner, metres, ego frame.
-        voxel_size: (3,) metres.
-        shape: (X, Y, Z) voxels.
+        grid: the voxel grid (ego frame, metres).
         classes: optional iterable of class ids; other labels are ignored.
 
     Returns:
@@ -77,8 +76,7 @@ def backproject_labels(
             f"intrinsics/cam_to_ego: expected [{b}, {c}, 3, 3] and [{b}, {c}, 4, 4], got "
             f"{tuple(intrinsics.shape)} and {tuple(cam_to_ego.shape)}"
         )
-    nx, ny, nz = (int(n) for n in shape)
-    n_vox, k = nx * ny * nz, NUM_SEMANTIC_CLASSES
+    n_vox, k = math.prod(grid.shape), NUM_SEMANTIC_CLASSES
     dev, dt = depth.device, torch.float32
     v, u = torch.meshgrid(
         torch.arange(h, dtype=dt, device=dev) + 0.5,
@@ -89,19 +87,15 @@ def backproject_labels(
     rays = torch.einsum("bcij,jhw->bcihw", torch.linalg.inv(intrinsics.to(dev, dt)), pix)
     pts = rays * depth.to(dt)[:, :, None]  # [B, C, 3, H, W] camera frame
     pose = cam_to_ego.to(dev, dt)
-    pts = torch.einsum("bcij,bcjhw->bcihw", pose[..., :3, :3], pts) + pose[..., :3, 3, None, None]
-    lo = torch.as_tensor(range_min, dtype=dt, device=dev).view(1, 1, 3, 1, 1)
-    size = torch.as_tensor(voxel_size, dtype=dt, device=dev).view(1, 1, 3, 1, 1)
-    ijk = torch.floor((pts - lo) / size).long()
-    dims = torch.tensor([nx, ny, nz], device=dev).view(1, 1, 3, 1, 1)
+    pts = torch.einsum("bcij,bcjhw->bchwi", pose[..., :3, :3], pts) + pose[:, :, None, None, :3, 3]
+    ijk, inside = grid.points_to_index(pts)  # [B, C, H, W, 3], [B, C, H, W]
     sem = semantics.to(dev).long()
-    ok = (depth > 0) & (sem >= 0) & (sem < FREE_ID) & ((ijk >= 0) & (ijk < dims)).all(2)
+    ok = (depth > 0) & (sem >= 0) & (sem < FREE_ID) & inside
     if classes is not None:
         allowed = torch.zeros(256, dtype=torch.bool, device=dev)
         allowed[torch.as_tensor(list(classes), dtype=torch.long, device=dev)] = True
         ok &= allowed[sem.clamp(0, 255)]
-    flat = (ijk[:, :, 0] * ny + ijk[:, :, 1]) * nz + ijk[:, :, 2]
-    flat = flat + (torch.arange(b, device=dev) * n_vox).view(b, 1, 1, 1)
+    flat = grid.flat_index(ijk) + (torch.arange(b, device=dev) * n_vox).view(b, 1, 1, 1)
     counts = torch.bincount(flat[ok] * k + sem[ok], minlength=b * n_vox * k).view(b, n_vox, k)
     cls = counts.argmax(-1)  # first maximum: ties go to the lower id
     return torch.where(counts.sum(-1) > 0, cls, torch.full_like(cls, FREE_ID))
@@ -140,14 +134,13 @@ def backprojected_loss(
         ``(bce, ce, targets)``: the two scalar losses (0 with a graph when nothing counts)
         and the [B, V] targets (class id, ``FREE_ID`` free, -1 unknown).
     """
-    geo = (grid.range_min, grid.voxel_size, grid.shape)
     occ = backproject_labels(
-        batch["depth"], batch["semantics"], batch["render_intrinsics"], batch["cam_to_ego"], *geo
+        batch["depth"], batch["semantics"], batch["render_intrinsics"], batch["cam_to_ego"], grid
     )
     if adjacent and "adj_depth" in batch:
         adj = backproject_labels(
             batch["adj_depth"], batch["adj_semantics"], batch["adj_render_intrinsics"],
-            batch["adj_cam_to_ego"], *geo, classes=STATIC_CLASS_IDS,
+            batch["adj_cam_to_ego"], grid, classes=STATIC_CLASS_IDS,
         )  # fmt: skip
         occ = torch.where(occ == FREE_ID, adj, occ)  # the keyframe's own points win
     free = free_space_targets(

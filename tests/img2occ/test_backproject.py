@@ -22,7 +22,7 @@ _FORWARD = torch.tensor(
 )
 # 1 m voxels, x in [0, 8), y in [-4, 4), z in [-1, 3): a point at ego (x, y, z) lands in
 # voxel (floor(x), floor(y + 4), floor(z + 1)).
-_GEO = dict(range_min=(0.0, -4.0, -1.0), voxel_size=(1.0, 1.0, 1.0), shape=(8, 8, 4))
+_GRID = VoxelGrid(GridSpec("t", (0.0, -4.0, -1.0), (8.0, 4.0, 3.0), (8, 8, 4)))
 CAR = OCC3D_CLASSES.index("car")
 ROAD = OCC3D_CLASSES.index("driveable_surface")
 
@@ -43,7 +43,7 @@ def _index(x: float, y: float, z: float) -> int:
 def test_a_labelled_wall_lands_in_its_voxels_with_its_classes():
     depth, intr, pose = _wall()
     sem = torch.tensor([[[[CAR, CAR, ROAD, ROAD], [CAR, CAR, ROAD, ROAD]]]])
-    out = backproject_labels(depth, sem, intr, pose, **_GEO)
+    out = backproject_labels(depth, sem, intr, pose, _GRID)
     assert out.shape == (1, 8 * 8 * 4)
     # Columns u = 0.5, 1.5 (car) sit at camera x = -4.125, -1.375 → ego y = 4.125 (outside
     # the grid), 1.375; columns 2.5, 3.5 (road) at ego y = -1.375, -4.125 (outside). Rows
@@ -64,7 +64,7 @@ def test_most_frequent_class_wins_and_ties_go_to_the_lower_id():
     for labels, want in (((CAR, ROAD), CAR), ((ROAD, CAR), CAR), ((ROAD, CAR, ROAD), ROAD)):
         sem = torch.tensor(labels).view(1, 1, 1, -1)
         depth = torch.full(sem.shape, 0.5)
-        out = backproject_labels(depth, sem, intr, pose, **_GEO)
+        out = backproject_labels(depth, sem, intr, pose, _GRID)
         assert int(out[0, voxel]) == want
         assert int((out != FREE_ID).sum()) == 1
 
@@ -75,11 +75,11 @@ def test_unlabelled_pixels_missing_depth_and_filtered_classes_count_nothing():
     sem[..., 1] = 255  # no label
     sem[..., 0, 2] = FREE_ID  # "free" is not a point's class
     depth[..., 1, 2] = 0.0  # labelled but without depth
-    out = backproject_labels(depth, sem, intr, pose, **_GEO)
+    out = backproject_labels(depth, sem, intr, pose, _GRID)
     assert int((out != FREE_ID).sum()) == 0  # what is left falls outside the grid or is gone
     sem = torch.tensor([[[[CAR, CAR, ROAD, ROAD], [CAR, CAR, ROAD, ROAD]]]])
     depth, intr, pose = _wall()
-    only_static = backproject_labels(depth, sem, intr, pose, **_GEO, classes=STATIC_CLASS_IDS)
+    only_static = backproject_labels(depth, sem, intr, pose, _GRID, classes=STATIC_CLASS_IDS)
     assert set(only_static.unique().tolist()) == {ROAD, FREE_ID}
     assert CAR not in STATIC_CLASS_IDS and ROAD in STATIC_CLASS_IDS
 
@@ -88,9 +88,9 @@ def test_backprojection_validates_shapes():
     depth, intr, pose = _wall()
     sem = torch.zeros(1, 1, 2, 4, dtype=torch.long)
     with pytest.raises(ValueError, match="semantics"):
-        backproject_labels(depth, sem[..., :3], intr, pose, **_GEO)
+        backproject_labels(depth, sem[..., :3], intr, pose, _GRID)
     with pytest.raises(ValueError, match="intrinsics/cam_to_ego"):
-        backproject_labels(depth, sem, intr, pose[..., :3, :], **_GEO)
+        backproject_labels(depth, sem, intr, pose[..., :3, :], _GRID)
 
 
 def test_the_synthetic_scenes_lidar_points_agree_with_its_gt(synthetic_batch):
@@ -100,9 +100,8 @@ def test_the_synthetic_scenes_lidar_points_agree_with_its_gt(synthetic_batch):
     b = synthetic_batch
     g = VoxelGrid(TEST_GRID)
     out = backproject_labels(
-        b["depth"], b["semantics"], b["render_intrinsics"], b["cam_to_ego"],
-        g.range_min, g.voxel_size, g.shape,
-    )[0]  # fmt: skip
+        b["depth"], b["semantics"], b["render_intrinsics"], b["cam_to_ego"], g
+    )[0]
     gt = b["occ"][0].reshape(-1).long()
     hit = out != FREE_ID
     assert int(hit.sum()) > 20
@@ -114,7 +113,7 @@ def test_the_synthetic_scenes_lidar_points_agree_with_its_gt(synthetic_batch):
 def test_loss_targets_hits_occupied_and_seen_through_voxels_free():
     depth, intr, pose = _wall(depth=5.5)
     sem = torch.full((1, 1, 2, 4), ROAD)
-    grid = VoxelGrid(GridSpec("t", (0.0, -4.0, -1.0), (8.0, 4.0, 3.0), (8, 8, 4)))
+    grid = _GRID
     centres = torch.as_tensor(grid.centres(), dtype=torch.float32).view(-1, 3)
     v = centres.shape[0]
     opac = torch.full((1, v), 0.5, requires_grad=True)
@@ -168,7 +167,7 @@ def test_backprojection_config_is_validated():
 def test_class_balance_lifts_the_rare_class_voxels_gradient():
     depth, intr, pose = _wall(depth=5.5)
     sem = torch.tensor([[[[CAR, CAR, ROAD, ROAD], [ROAD, ROAD, ROAD, ROAD]]]])
-    grid = VoxelGrid(GridSpec("t", (0.0, -4.0, -1.0), (8.0, 4.0, 3.0), (8, 8, 4)))
+    grid = _GRID
     centres = torch.as_tensor(grid.centres(), dtype=torch.float32).view(-1, 3)
     batch = dict(depth=depth, semantics=sem, render_intrinsics=intr, cam_to_ego=pose)
     car, road = _index(5.5, 1.375, 2.375), _index(5.5, -1.375, 2.375)
