@@ -112,6 +112,10 @@ class TrainerConfig:
         num_workers: DataLoader worker processes per training process.
         grad_accum: Micro-batches accumulated per optimizer step.
         grad_clip: Max global gradient L2 norm (None or 0: no clipping).
+        ema_decay: Keep an exponential moving average of the weights with this decay in
+            (0, 1) and validate, checkpoint (``model``) and read out the average; the trained
+            weights are checkpointed as ``model_raw`` (:mod:`renderworld.training.ema`).
+            None or 0: off.
         precision: ``"32"``, ``"bf16"`` or ``"fp16"``. Mixed precision runs on CUDA only; on
             CPU it falls back to 32-bit with a warning.
         device: ``"auto"`` (CUDA if available), ``"cpu"`` or ``"cuda"``.
@@ -138,6 +142,7 @@ class TrainerConfig:
     num_workers: int = 0
     grad_accum: int = 1
     grad_clip: float | None = 1.0
+    ema_decay: float | None = None
     precision: str = "32"
     device: str = "auto"
     val_every: int | None = 500
@@ -173,6 +178,11 @@ class TrainerConfig:
             _positive("trainer.max_minutes", self.max_minutes)
         if self.grad_clip is not None:
             _non_negative("trainer.grad_clip", self.grad_clip)
+        if self.ema_decay and not 0.0 < self.ema_decay < 1.0:
+            raise ValueError(
+                f"trainer.ema_decay: expected a value in (0, 1) (or null: off), got "
+                f"{self.ema_decay}"
+            )
         _one_of("trainer.precision", self.precision, PRECISIONS)
         _one_of("trainer.monitor_mode", self.monitor_mode, MONITOR_MODES)
         if self.device not in ("auto", "cpu") and not self.device.startswith("cuda"):

@@ -30,6 +30,7 @@ from renderworld.training.checkpoint import (
 )
 from renderworld.training.config import OptimizerConfig, SchedulerConfig, TrainerConfig
 from renderworld.training.data import SeededDataset, ShardedSampler, make_loader
+from renderworld.training.ema import WeightEMA
 from renderworld.training.distributed import (
     DistInfo,
     all_gather_object,
@@ -90,6 +91,7 @@ class Trainer:
             val_set = train_set
         self.train_set = SeededDataset(train_set, seed)
         self.model = stage.build_model(cfg).to(info.device)
+        self.ema = WeightEMA(self.model, tcfg.ema_decay) if tcfg.ema_decay else None
         self.ddp_model: nn.Module = self.model
         if info.distributed:
             self.ddp_model = DistributedDataParallel(
@@ -134,6 +136,11 @@ class Trainer:
         # Training stream: per-rank seed (dropout differs across ranks, as it should).
         seed_everything(seed + info.rank)
 
+    @property
+    def eval_model(self) -> nn.Module:
+        """The weights validated, checkpointed as ``model`` and read out: the EMA when on."""
+        return self.ema.module if self.ema is not None else self.model
+
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:
         """Checkpoint dict; collective (every rank must call it: RNG states are gathered)."""
@@ -147,7 +154,12 @@ class Trainer:
             "elapsed_s": self.elapsed_s,
             "world_size": self.info.world_size,
             "config": self.config_yaml,
-            "model": self.model.state_dict(),
+            "model": self.eval_model.state_dict(),
+            **(
+                {"model_raw": self.model.state_dict(), "ema": self.ema.state()}
+                if self.ema is not None
+                else {}
+            ),
             "optimizer": self.optimizer.state_dict(),
             "scheduler": self.scheduler.state_dict(),
             "grad_scaler": self.scaler.state_dict() if self.scaler.is_enabled() else {},
@@ -157,9 +169,18 @@ class Trainer:
         }
 
     def load_state_dict(self, ckpt: dict[str, Any], source: str) -> None:
-        """Restore everything from a training checkpoint; strict on model keys."""
-        check_state_dict_keys(self.model, ckpt["model"], source=source)
-        self.model.load_state_dict(ckpt["model"], strict=True)
+        """Restore everything from a training checkpoint; strict on model keys.
+
+        With ``model_raw`` in the checkpoint (written with an EMA) the optimizer's weights come
+        from it and ``model`` is the average; without, ``model`` is both and an EMA turned on
+        for the resume starts its average there.
+        """
+        raw = ckpt.get("model_raw", ckpt["model"])
+        check_state_dict_keys(self.model, raw, source=source)
+        self.model.load_state_dict(raw, strict=True)
+        if self.ema is not None:
+            has_ema = "model_raw" in ckpt
+            self.ema.load(ckpt["model"], ckpt.get("ema") if has_ema else None)
         self.optimizer.load_state_dict(ckpt["optimizer"])
         self.scheduler.load_state_dict(ckpt["scheduler"])
         if self.scaler.is_enabled() and ckpt.get("grad_scaler"):
@@ -223,13 +244,17 @@ class Trainer:
         self.scaler.step(self.optimizer)
         self.scaler.update()
         self.scheduler.step()
+        if self.ema is not None:
+            self.ema.update(self.model)
         return sums, norm_f
 
     def validate(self) -> dict[str, float]:
         """Validation metrics (``val/...``), or {} without a validation set."""
         if self.val_loader is None:
             return {}
-        return run_validation(self.stage, self.model, self.val_loader, self.info, self.precision)
+        return run_validation(
+            self.stage, self.eval_model, self.val_loader, self.info, self.precision
+        )
 
     def _after_validation(self, metrics: dict[str, float]) -> None:
         self.val_metrics = metrics
@@ -363,7 +388,7 @@ class Trainer:
             self._after_validation(metrics)
         if saved_at != self.step:
             self.save("last.pt")
-        self.stage.on_train_end(self.model, str(self.run_dir))
+        self.stage.on_train_end(self.eval_model, str(self.run_dir))
         out: dict[str, float] = {k: v for k, v in last_train.items() if k == "train/loss"}
         out.update(self.val_metrics)
         out["step"] = float(self.step)
