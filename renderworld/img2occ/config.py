@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 
 from renderworld.constants import GridSpec, get_grid
+from renderworld.img2occ.mirror import check_mirror_grid
 
 __all__ = ["Img2OccConfig"]
 
@@ -107,6 +108,13 @@ class Img2OccConfig:
         backproject_class_balance: p in [0, 1]: the back-projected targets weigh each
             voxel by its class's frequency among them to the power -p; 0 = unweighted.
         adjacent_weight: weight of the adjacent-frame losses relative to the keyframe's.
+        mirror_prob: probability that a training batch is replaced by its mirror image
+            across the ego x-z plane (images and label maps flipped left-right, poses and
+            intrinsics mirrored: ``renderworld.img2occ.mirror``); 0 = off. Needs a grid
+            symmetric in y.
+        mirror_readout: readout (eval, threshold search, export) averages the opacities and
+            class probabilities of the scene and of its mirror image (flipped back): two
+            encoder passes per sample. Needs a grid symmetric in y.
         near: rasterizer near plane, metres (camera z).
         far: rasterizer far plane, metres.
         render_backend: the rasterizer backend ("auto", "reference", "torch", "gsplat").
@@ -165,6 +173,8 @@ class Img2OccConfig:
     backproject_adjacent: bool = False
     backproject_class_balance: float = 0.0
     adjacent_weight: float = 0.5
+    mirror_prob: float = 0.0
+    mirror_readout: bool = False
     near: float = 0.1
     far: float = 100.0
     render_backend: str = "auto"
@@ -261,6 +271,15 @@ class Img2OccConfig:
             raise ValueError(
                 f"backproject_adjacent: expected a bool, got {self.backproject_adjacent!r}"
             )
+        if not (0.0 <= float(self.mirror_prob) <= 1.0):
+            raise ValueError(f"mirror_prob: expected a value in [0, 1], got {self.mirror_prob!r}")
+        if not isinstance(self.mirror_readout, bool):
+            raise ValueError(f"mirror_readout: expected a bool, got {self.mirror_readout!r}")
+        if self.mirror_prob > 0 or self.mirror_readout:
+            try:
+                check_mirror_grid(self.grid)
+            except ValueError as err:
+                raise ValueError(f"mirror_prob / mirror_readout: {err}") from None
         if self.supervision not in ("2d", "3d"):
             raise ValueError(f"supervision: expected '2d' or '3d', got {self.supervision!r}")
         if not (0 < self.prob_eps < 1e-2):

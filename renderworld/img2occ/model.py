@@ -19,6 +19,7 @@ from torch import nn
 from renderworld.constants import NUM_SEMANTIC_CLASSES
 from renderworld.geometry import VoxelGrid, scale_intrinsics
 from renderworld.img2occ.backproject import backprojected_loss
+from renderworld.img2occ.mirror import average_with_mirror, mirror_batch
 from renderworld.img2occ.carving import free_space_loss, free_space_targets
 from renderworld.img2occ.config import Img2OccConfig
 from renderworld.img2occ.depth_lift import (
@@ -173,6 +174,13 @@ class Img2Occ(nn.Module):
             depth_moments=self.cfg.ray_weight > 0,
         )  # fmt: skip
 
+    def augment(self, batch: dict) -> dict:
+        """Training: the batch's mirror image with probability ``cfg.mirror_prob``, else it."""
+        p = self.cfg.mirror_prob
+        if self.training and p > 0 and float(torch.rand(())) < p:
+            return mirror_batch(batch)
+        return batch
+
     # ------------------------------------------------------------------ forward
     def forward(self, batch: dict, render: bool | None = None) -> Img2OccOutput:
         """Predict Gaussians and (optionally) render them into the cameras.
@@ -195,6 +203,9 @@ class Img2Occ(nn.Module):
         if render is None:
             render = not (self.training and self.cfg.supervision == "3d")
         if not render:
+            if self.cfg.mirror_readout and not self.training:
+                mirrored = self.encode(mirror_batch(batch))[0]
+                average_with_mirror(out.gaussians, mirrored, self.cfg.grid.shape)
             return out
         self._check_batch(batch, ("render_intrinsics",))
         c = batch["cam_to_ego"].shape[1]

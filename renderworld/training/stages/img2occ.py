@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +35,7 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset, default_collate
 
 from renderworld.constants import OCC3D_CLASSES
+from renderworld.data.cache import CachedDataset
 from renderworld.img2occ import Img2Occ, Img2OccConfig, draw_views
 from renderworld.training.checkpoint import (
     check_state_dict_keys,
@@ -211,11 +213,22 @@ class Img2OccStage(ThresholdMixin, Stage):
         train = img2occ_datasets(cfg, cfg.dataset.train_split, _adjacent(cfg))
         # Evaluation reads the readout only: no adjacent views to load.
         self._val = img2occ_datasets(cfg, cfg.dataset.val_split)
+        if cfg.stage.get("cache_samples", False):
+            if int(cfg.trainer.get("num_workers", 0)) > 0:
+                warnings.warn(
+                    "stage.cache_samples: ignored with trainer.num_workers > 0 (each worker "
+                    "process would fill its own copy); set num_workers=0 to cache",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
+            else:
+                train, self._val = CachedDataset(train), CachedDataset(self._val)
         return train, self._val
 
     # ------------------------------------------------------------------ train
     def loss(self, model: nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, Any]]:
         raw = model.module if hasattr(model, "module") else model
+        batch = raw.augment(batch)
         return raw.loss(batch, model(batch))
 
     # ------------------------------------------------------------------ evaluate
