@@ -59,6 +59,9 @@ class Img2Occ(nn.Module):
             function, imported on first use.
     """
 
+    #: State keys older checkpoints may lack (the load pre-hook fills in their defaults).
+    optional_state_keys = ("class_thresholds", "class_offsets")
+
     def __init__(self, cfg: Img2OccConfig | None = None, render_fn: Callable | None = None):
         super().__init__()
         self.cfg = cfg if cfg is not None else Img2OccConfig()
@@ -87,6 +90,8 @@ class Img2Occ(nn.Module):
         )
         # Optional per-class thresholds (negative = unset: the single one applies).
         self.register_buffer("class_thresholds", torch.full((NUM_SEMANTIC_CLASSES,), -1.0))
+        # Per-class logit offsets of the readout's argmax (0 = plain argmax; calibration).
+        self.register_buffer("class_offsets", torch.zeros(NUM_SEMANTIC_CLASSES))
         self._register_load_state_dict_pre_hook(_default_class_thresholds)
 
     # ------------------------------------------------------------------ inputs
@@ -387,15 +392,27 @@ class Img2Occ(nn.Module):
             )
         self.class_thresholds.copy_(t)
 
+    def set_class_offsets(self, offsets) -> None:
+        """Store per-class logit offsets ([K] finite values) of the readout's argmax."""
+        o = torch.as_tensor(offsets, dtype=torch.float32).reshape(-1)
+        if o.numel() != NUM_SEMANTIC_CLASSES or not bool(torch.isfinite(o).all()):
+            raise ValueError(f"offsets: expected {NUM_SEMANTIC_CLASSES} finite values, got {o}")
+        self.class_offsets.copy_(o)
+
     def readout(self, output: Img2OccOutput) -> torch.Tensor:
         """3-D semantic occupancy [B, X, Y, Z] uint8 (``FREE_ID`` = free), ego frame: the
-        per-class thresholds when set, else the single one."""
+        per-class thresholds when set, else the single one; the class is the argmax of the
+        logits plus the stored per-class offsets (0 unless calibrated)."""
         g = output.gaussians
         t = self.class_thresholds
         threshold = t if bool((t >= 0).all()) else float(self.occupancy_threshold)
-        return readout_occupancy(g.opacities, g.logits, threshold, output.grid_shape)
+        return readout_occupancy(
+            g.opacities, g.logits, threshold, output.grid_shape, self.class_offsets
+        )
 
 
 def _default_class_thresholds(state_dict, prefix, *args, **kwargs) -> None:
-    # Checkpoints written before per-class thresholds existed: unset (-1), single threshold.
+    # Checkpoints written before per-class thresholds existed: unset (-1), single threshold;
+    # before class offsets existed: 0 (plain argmax).
     state_dict.setdefault(prefix + "class_thresholds", torch.full((NUM_SEMANTIC_CLASSES,), -1.0))
+    state_dict.setdefault(prefix + "class_offsets", torch.zeros(NUM_SEMANTIC_CLASSES))

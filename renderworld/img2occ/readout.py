@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from renderworld.constants import FREE_ID, NUM_OCC3D_CLASSES
+from renderworld.img2occ.calibration import DEFAULT_OFFSETS, ReadoutCalibration, readout_classes
 from renderworld.metrics.occupancy import confusion_matrix as occupancy_confusion
 from renderworld.metrics.occupancy import geometry_iou, iou_per_class, mean_iou
 
@@ -138,6 +139,9 @@ def choose_threshold(
     criterion: str = "miou",
     use_camera_mask: bool = True,
     per_class: bool = False,
+    class_offsets: bool = False,
+    offset_candidates: Sequence[float] = DEFAULT_OFFSETS,
+    offset_rounds: int = 2,
 ) -> tuple[float, dict[float, float]]:
     """Pick the readout threshold maximising training-split mIoU and store it in ``model``.
 
@@ -151,12 +155,26 @@ def choose_threshold(
         per_class: also choose one threshold per class (:meth:`ThresholdSearch.
             best_per_class`, needs criterion "miou") and store them in
             ``model.class_thresholds``; the returned threshold is then the single best one.
+        class_offsets: also choose per-class logit offsets together with the per-class
+            thresholds (:class:`~renderworld.img2occ.calibration.ReadoutCalibration`, needs
+            per_class) and store them in ``model.class_offsets``; the model's offsets are
+            reset to 0 first. Without it the model's stored offsets apply as they are.
+        offset_candidates: candidate offsets (with class_offsets).
+        offset_rounds: coordinate-ascent passes (with class_offsets).
 
     Returns:
         ``(threshold, {threshold: score})``; the threshold is also written to
         ``model.occupancy_threshold``.
     """
+    if class_offsets and not per_class:
+        raise ValueError("class_offsets: needs per_class (offsets and thresholds go together)")
+    if per_class and criterion != "miou":
+        raise ValueError("per_class: needs criterion 'miou' (geometry IoU is not per class)")
     search = ThresholdSearch(thresholds)
+    calibration = None
+    if class_offsets:
+        calibration = ReadoutCalibration(thresholds, offset_candidates, offset_rounds)
+        model.set_class_offsets(torch.zeros_like(model.class_offsets))
     was_training = model.training
     model.eval()
     seen = 0
@@ -169,7 +187,11 @@ def choose_threshold(
             out = model(batch, render=False)
             g = out.gaussians
             mask = batch["mask_camera"] if use_camera_mask else None
-            search.update(g.opacities, g.logits.argmax(-1), batch["occ"], mask)
+            search.update(
+                g.opacities, readout_classes(g.logits, model.class_offsets), batch["occ"], mask
+            )
+            if calibration is not None:
+                calibration.update(g.opacities, g.logits, batch["occ"], mask)
             seen += 1
     finally:
         model.train(was_training)
@@ -177,16 +199,20 @@ def choose_threshold(
         raise ValueError("batches: empty; expected at least one batch with GT")
     best = search.best(criterion)
     model.set_threshold(best)
-    if per_class:
-        if criterion != "miou":
-            raise ValueError("per_class: needs criterion 'miou' (geometry IoU is not per class)")
+    if calibration is not None:
+        offsets, per_class_thresholds, _ = calibration.fit()
+        model.set_class_offsets(offsets)
+        model.set_class_thresholds(per_class_thresholds)
+    elif per_class:
         model.set_class_thresholds(search.best_per_class())
     scores = search.scores(criterion)
     return best, {float(t): float(s) for t, s in zip(search.thresholds, scores)}
 
 
-def readout_occupancy(opacities: torch.Tensor, logits: torch.Tensor, threshold, grid_shape):
-    """Voxel classes: argmax of logits where opacity > threshold, else ``FREE_ID``.
+def readout_occupancy(
+    opacities: torch.Tensor, logits: torch.Tensor, threshold, grid_shape, offsets=None
+):
+    """Voxel classes: argmax of logits (+ offsets) where opacity > threshold, else ``FREE_ID``.
 
     Args:
         opacities: [B, V] in (0, 1).
@@ -194,11 +220,13 @@ def readout_occupancy(opacities: torch.Tensor, logits: torch.Tensor, threshold, 
         threshold: opacity threshold, a float or a [K] tensor of per-class thresholds (the
             one of each voxel's argmax class applies).
         grid_shape: (X, Y, Z) with X·Y·Z = V.
+        offsets: [K] per-class logit offsets added before the argmax
+            (:mod:`renderworld.img2occ.calibration`), or None.
 
     Returns:
         [B, X, Y, Z] uint8 Occ3D ids (``FREE_ID`` = free).
     """
-    cls = logits.argmax(-1)
+    cls = readout_classes(logits, offsets)
     if isinstance(threshold, torch.Tensor) and threshold.ndim == 1:
         threshold = threshold.to(opacities)[cls]
     out = torch.where(opacities > threshold, cls, torch.full_like(cls, FREE_ID))

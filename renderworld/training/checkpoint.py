@@ -149,11 +149,16 @@ def check_state_dict_keys(
 ) -> None:
     """Raise unless ``state_dict`` has exactly the model's keys and shapes.
 
+    Keys listed in the model's ``optional_state_keys`` attribute may be missing (the model
+    gives them defaults on load, e.g. readout calibration added after a checkpoint was written).
+
     Raises:
         CheckpointError: listing missing keys, unexpected keys and shape mismatches.
     """
     own = model.state_dict()
-    missing = sorted(set(own) - set(state_dict))
+    # Keys a model fills in itself when an older checkpoint lacks them (its load pre-hook).
+    optional = set(getattr(model, "optional_state_keys", ()))
+    missing = sorted(set(own) - set(state_dict) - optional)
     unexpected = sorted(set(state_dict) - set(own))
     shapes = sorted(
         f"{k}: model {tuple(own[k].shape)} vs checkpoint {tuple(state_dict[k].shape)}"

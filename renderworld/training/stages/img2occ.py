@@ -48,7 +48,11 @@ from renderworld.training.stages.common import (
     infos_dir,
     occupancy_metrics,
 )
-from renderworld.training.stages.img2occ_threshold import ThresholdMixin, _threshold_options
+from renderworld.training.stages.img2occ_threshold import (
+    ThresholdMixin,
+    _offset_options,
+    _threshold_options,
+)
 
 __all__ = [
     "Img2OccStage",
@@ -210,6 +214,7 @@ class Img2OccStage(ThresholdMixin, Stage):
     def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
         img2occ_config(cfg)  # fail on a bad model or threshold config before any data is read
         _threshold_options(cfg)
+        _offset_options(cfg)
         train = img2occ_datasets(cfg, cfg.dataset.train_split, _adjacent(cfg))
         # Evaluation reads the readout only: no adjacent views to load.
         self._val = img2occ_datasets(cfg, cfg.dataset.val_split)
@@ -300,11 +305,19 @@ class Img2OccStage(ThresholdMixin, Stage):
                 + ", ".join(f"{c} {t:g}" for c, t in zip(OCC3D_CLASSES, per_class))
                 + ")"
             )
+        offsets = raw.class_offsets.tolist()
+        argmax = "argmax of the Gaussian's logits"
+        if any(offsets):
+            argmax = (
+                "argmax of the Gaussian's logits plus the stored per-class offsets ("
+                + ", ".join(f"{c} {o:+g}" for c, o in zip(OCC3D_CLASSES, offsets) if o)
+                + ")"
+            )
         notes = [
             f"checkpoint: `{self.cfg.get('ckpt')}` (step {int(metrics.get('step', -1))})",
             f"split: `{self.cfg.dataset.val_split}`, {int(metrics.get('val/samples', 0))} "
             f"samples, grid `{self.cfg.grid.name}` {list(self.cfg.grid.shape)}",
-            f"readout: {rule}, class = argmax of the Gaussian's logits",
+            f"readout: {rule}, class = {argmax}",
         ]
         text = occ3d_report_markdown(metrics, "Img2Occ occupancy, Occ3D protocol", notes)
         (out / "occ3d_metrics.md").write_text(text)

@@ -2,7 +2,8 @@
 
 At the end of training (rank 0) ``choose_threshold`` picks the readout threshold on the
 TRAINING split (criterion ``stage.threshold.criterion``, camera mask; with
-``stage.threshold.per_class`` also one per class) for the weights of ``last.pt`` and,
+``stage.threshold.per_class`` also one per class, with ``class_offsets`` also per-class logit
+offsets of the argmax) for the weights of ``last.pt`` and,
 separately, of ``best.pt``; each checkpoint is re-written atomically with its thresholds in the
 model state, a ``threshold`` record and its validation metrics recomputed with them.
 """
@@ -22,6 +23,7 @@ from torch.utils.data import Dataset, Subset
 
 from renderworld.constants import OCC3D_CLASSES
 from renderworld.img2occ import Img2Occ, choose_threshold
+from renderworld.img2occ.calibration import DEFAULT_OFFSETS
 from renderworld.img2occ.readout import DEFAULT_THRESHOLDS
 from renderworld.training.checkpoint import load_checkpoint, save_checkpoint
 
@@ -52,6 +54,28 @@ def _threshold_options(cfg: Any) -> tuple[str, list[float], int | None, bool]:
     return criterion, candidates, cap, per_class
 
 
+def _offset_options(cfg: Any) -> tuple[bool, list[float], int]:
+    """(class_offsets, offset_candidates, offset_rounds) of ``stage.threshold``, validated."""
+    t = cfg.stage.get("threshold") or {}
+    on = t.get("class_offsets", False)
+    per_class = _threshold_options(cfg)[3]
+    if not isinstance(on, bool) or (on and not per_class):
+        raise ValueError(
+            f"stage.threshold.class_offsets: expected true (with per_class true) or false, got "
+            f"{on!r} with per_class {per_class!r}"
+        )
+    raw = t.get("offset_candidates")
+    cands = list(DEFAULT_OFFSETS) if raw is None else [float(v) for v in raw]
+    if 0.0 not in cands or not all(np.isfinite(cands)):
+        raise ValueError(
+            f"stage.threshold.offset_candidates: expected finite values including 0, got {raw!r}"
+        )
+    rounds = t.get("offset_rounds", 2)
+    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
+        raise ValueError(f"stage.threshold.offset_rounds: expected an int >= 1, got {rounds!r}")
+    return on, cands, rounds
+
+
 def _is_main() -> bool:
     dist = torch.distributed
     return not (dist.is_available() and dist.is_initialized()) or dist.get_rank() == 0
@@ -72,15 +96,24 @@ class ThresholdMixin:
 
     def _choose(self, model: Img2Occ, data: Dataset) -> dict[str, Any]:
         criterion, candidates, _, per_class = _threshold_options(self.cfg)
+        offsets, offset_candidates, rounds = _offset_options(self.cfg)
         device = next(model.parameters()).device
         batches = (self.transfer_batch(b, device) for b in self._loader(data))
         initial = float(model.occupancy_threshold)
-        value, scores = choose_threshold(model, batches, candidates, criterion, True, per_class)
+        value, scores = choose_threshold(
+            model, batches, candidates, criterion, True, per_class, offsets, offset_candidates,
+            rounds,
+        )  # fmt: skip
         return {
             "value": value,
             "per_class": (
                 {c: round(t, 6) for c, t in zip(OCC3D_CLASSES, model.class_thresholds.tolist())}
                 if per_class
+                else None
+            ),
+            "class_offsets": (
+                {c: round(o, 6) for c, o in zip(OCC3D_CLASSES, model.class_offsets.tolist())}
+                if offsets
                 else None
             ),
             "initial": initial,
