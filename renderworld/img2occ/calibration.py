@@ -12,8 +12,9 @@ the per-class thresholds are re-chosen for the new argmax; ``rounds`` passes.
 
 Memory: voxels whose opacity is at or below the smallest candidate threshold read as free
 whatever the offsets, so only their (GT, free) counts are kept; the others are stored
-(80 bytes per voxel: 17 float32 logits, the opacity, the int64 GT id), e.g. ~45 MB for the 96 samples of
-``experiment=img2occ_mini``. On large grids cap the samples (``stage.threshold.max_samples``).
+(80 bytes per voxel: 17 float32 logits, the opacity, the int64 GT id), e.g. ~45 MB for the
+96 samples of ``experiment=img2occ_mini``. On large grids cap the samples
+(``stage.threshold.max_samples``).
 """
 
 from __future__ import annotations

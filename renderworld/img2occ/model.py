@@ -19,7 +19,6 @@ from torch import nn
 from renderworld.constants import NUM_SEMANTIC_CLASSES
 from renderworld.geometry import VoxelGrid, scale_intrinsics
 from renderworld.img2occ.backproject import backprojected_loss
-from renderworld.img2occ.mirror import average_with_mirror, mirror_batch
 from renderworld.img2occ.carving import free_space_loss, free_space_targets
 from renderworld.img2occ.config import Img2OccConfig
 from renderworld.img2occ.depth_lift import (
@@ -40,6 +39,7 @@ from renderworld.img2occ.losses import (
     relative_depth_l1_loss,
     semantic_nll_loss,
 )
+from renderworld.img2occ.mirror import average_with_mirror, mirror_batch
 from renderworld.img2occ.output import Img2OccOutput, _gather_views
 from renderworld.img2occ.readout import readout_occupancy
 from renderworld.img2occ.render import RenderedViews, render_views

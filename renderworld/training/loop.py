@@ -30,13 +30,13 @@ from renderworld.training.checkpoint import (
 )
 from renderworld.training.config import OptimizerConfig, SchedulerConfig, TrainerConfig
 from renderworld.training.data import SeededDataset, ShardedSampler, make_loader
-from renderworld.training.ema import WeightEMA
 from renderworld.training.distributed import (
     DistInfo,
     all_gather_object,
     all_reduce_sum,
     any_rank,
 )
+from renderworld.training.ema import WeightEMA
 from renderworld.training.loggers import MetricLogger
 from renderworld.training.optim import build_optimizer, build_scheduler
 from renderworld.training.registry import Stage

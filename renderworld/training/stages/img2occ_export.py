@@ -36,6 +36,8 @@ class ExportSummary:
         threshold: the single readout opacity threshold.
         class_thresholds: {class name: threshold} when the checkpoint holds per-class
             thresholds (they are the ones used), else None.
+        class_offsets: {class name: logit offset} of the readout's argmax when the
+            checkpoint holds calibrated offsets (any non-zero), else None.
         grid: grid name and shape of the labels.
         class_fractions: {class name: fraction of all written voxels}, free included.
     """
@@ -47,6 +49,7 @@ class ExportSummary:
     grid: str
     class_fractions: dict[str, float] = field(default_factory=dict)
     class_thresholds: dict[str, float] | None = None
+    class_offsets: dict[str, float] | None = None
 
     def __str__(self) -> str:
         total = sum(self.files_per_split.values())
@@ -59,6 +62,7 @@ class ExportSummary:
             f"exported {total} samples {self.files_per_split} to {self.out_dir / 'gts'} "
             f"(grid {self.grid}, checkpoint step {self.step}, readout opacity > "
             + ("the per-class thresholds" if self.class_thresholds else f"{self.threshold:g}")
+            + (", class = argmax of logits + per-class offsets" if self.class_offsets else "")
             + f"); occupied voxels {100 * occupied:.2f} %, most frequent: "
             + ", ".join(f"{k} {100 * v:.2f} %" for v, k in top)
         )
@@ -161,6 +165,11 @@ def export_pseudo_labels(
             if bool((model.class_thresholds >= 0).all())
             else None
         ),
+        class_offsets=(
+            dict(zip(OCC3D_CLASSES, model.class_offsets.tolist()))
+            if bool((model.class_offsets != 0).any())
+            else None
+        ),
     )
     info = {
         "checkpoint": str(Path(ckpt).resolve()),
@@ -169,6 +178,7 @@ def export_pseudo_labels(
         "step": summary.step,
         "threshold": summary.threshold,
         "class_thresholds": summary.class_thresholds,
+        "class_offsets": summary.class_offsets,
         "grid": {"name": grid.name, "shape": list(grid.shape)},
         "files_per_split": counts,
         "class_fractions": fractions,

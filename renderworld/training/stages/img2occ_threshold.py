@@ -181,6 +181,7 @@ class ThresholdMixin:
         state = dict(ckpt["model"])
         state["occupancy_threshold"] = model.occupancy_threshold.detach().cpu().clone()
         state["class_thresholds"] = model.class_thresholds.detach().cpu().clone()
+        state["class_offsets"] = model.class_offsets.detach().cpu().clone()
         ckpt["model"] = state
         record = dict(record, metrics_at_initial=dict(ckpt.get("metrics") or {}))
         ckpt["threshold"] = record
