@@ -11,6 +11,7 @@ from renderworld.img2occ import choose_threshold
 from renderworld.img2occ.calibration import ReadoutCalibration
 from renderworld.img2occ.readout import readout_occupancy
 from renderworld.metrics.occupancy import confusion_matrix, mean_iou
+from tests.img2occ._synthetic import TEST_GRID
 from tests.img2occ.conftest import make_model
 
 BARRIER = OCC3D_CLASSES.index("barrier")
@@ -92,6 +93,12 @@ def test_a_class_absent_from_gt_is_never_predicted_rather_than_scored_zero():
 def test_choose_threshold_stores_offsets_that_the_readout_uses(synthetic_batch):
     model = make_model().eval()
     with torch.no_grad():
+        # Untrained head biased so that barrier wins every voxel's argmax by 0.5 over road:
+        # no threshold can read the ground right, an offset can.
+        bias = model.head.out.bias.view(TEST_GRID.shape[2], -1)
+        bias[:, 10] = 2.0  # opacity ~0.88 everywhere
+        bias[:, 11 + ROAD] = 1.0
+        bias[:, 11 + BARRIER] = 1.5
         model.set_class_offsets(torch.full((K,), 0.7))  # reset to 0 before calibrating
         choose_threshold(model, [synthetic_batch], THRESHOLDS, per_class=True, class_offsets=True)
         pred = model.readout(model(synthetic_batch, render=False))
@@ -101,6 +108,8 @@ def test_choose_threshold_stores_offsets_that_the_readout_uses(synthetic_batch):
         _, _, history = cal.fit()
     conf = confusion_matrix(pred, synthetic_batch["occ"], synthetic_batch["mask_camera"])
     assert mean_iou(conf) == pytest.approx(history[-1])
+    # The fit moved some offset, so the equality above needs the stored offsets in readout.
+    assert bool((model.class_offsets != 0).any()) and history[-1] > history[0]
     assert set(model.class_offsets.tolist()) <= {-3, -2, -1.5, -1, -0.5, -0.25, 0, 0.25, 0.5, 1,
                                                   1.5, 2, 3}  # fmt: skip
 
