@@ -134,7 +134,7 @@ def run_one(args) -> dict:
         "grid": args.grid,
         "anchors": grid.num_voxels,
         "prune": prune,
-        "rendered": logs["gaussians_rendered"],
+        "rendered": float(logs["gaussians_rendered"]),
         "backend": backend,
         "step_s": statistics.median(times),
         "peak_mb": peak_mb,

@@ -38,12 +38,19 @@ _HASHED = (
 
 
 def fixture_hash(preset: str, **overrides) -> str:
-    """Hash of the simulator code, its configs, and the preset name + overrides."""
+    """Hash of the simulator code, its configs, and the preset name + overrides.
+
+    Of ``configs/sim/preset/`` only this preset's file counts: adding a preset leaves the
+    other fixtures' caches valid.
+    """
     h = hashlib.sha256(f"{preset}:{sorted(overrides.items())}".encode())
+    presets = REPO_ROOT / "configs" / "sim" / "preset"
     for rel in _HASHED:
         p = REPO_ROOT / rel
         files = sorted(p.rglob("*")) if p.is_dir() else [p]
         for f in files:
+            if f.parent == presets and f.stem != preset:
+                continue
             if f.is_file() and f.suffix in (".py", ".yaml"):
                 h.update(str(f.relative_to(REPO_ROOT)).encode())
                 h.update(f.read_bytes())
@@ -70,6 +77,13 @@ def make_fixture(preset: str = "tiny", **overrides) -> Path:
 def tiny_dataset() -> Path:
     """Root of the cached ``tiny`` simulated dataset (see module docstring)."""
     return make_fixture("tiny")
+
+
+@pytest.fixture(scope="session")
+def full_dataset() -> Path:
+    """Root of the cached ``full`` simulated dataset: Occ3D grid, 800x450 images, laid out as
+    v1.0-trainval (slow-marked tests only; see configs/sim/preset/full.yaml)."""
+    return make_fixture("full")
 
 
 @pytest.fixture(scope="session")

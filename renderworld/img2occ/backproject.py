@@ -24,6 +24,7 @@ from renderworld.geometry import VoxelGrid
 from renderworld.img2occ.carving import free_space_targets
 from renderworld.img2occ.depth_lift import occupancy_3d_loss
 from renderworld.img2occ.losses import balanced_class_weights
+from renderworld.precision import float32_boundary
 
 __all__ = ["STATIC_CLASS_IDS", "backproject_labels", "backprojected_loss"]
 
@@ -101,6 +102,7 @@ def backproject_labels(
     return torch.where(counts.sum(-1) > 0, cls, torch.full_like(cls, FREE_ID))
 
 
+@float32_boundary  # float32: LiDAR pixels put back at their depth: geometry
 def backprojected_loss(
     opacities: torch.Tensor,
     logits: torch.Tensor,

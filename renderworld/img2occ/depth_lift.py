@@ -20,6 +20,7 @@ from torch import nn
 
 from renderworld.constants import FREE_ID, NUM_SEMANTIC_CLASSES
 from renderworld.img2occ.encoder import _norm
+from renderworld.precision import float32_boundary
 
 __all__ = [
     "DepthSemanticHead",
@@ -67,6 +68,7 @@ class DepthSemanticHead(nn.Module):
         return self.net(features)
 
 
+@float32_boundary  # float32: a cumulative sum over depth bins
 def depth_cdf(depth_logits: torch.Tensor) -> torch.Tensor:
     """CDF at the bin edges of the softmax over dim 1: [N, D, ...] → [N, D + 1, ...].
 
@@ -167,6 +169,7 @@ def sample_at_labels(
     return s.permute(0, 2, 3, 1)
 
 
+@float32_boundary  # float32: label-pixel projection and cross-entropies
 def image_label_losses(
     logits: torch.Tensor,
     k_feat: torch.Tensor,
@@ -233,6 +236,7 @@ def _masked_mean(x: torch.Tensor, m: torch.Tensor, w: torch.Tensor | None = None
     return x.sum() / m.sum().clamp_min(1).to(x.dtype)
 
 
+@float32_boundary  # float32: BCE of opacities near 0 and 1
 def occupancy_3d_loss(
     opacities: torch.Tensor,
     logits: torch.Tensor,

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import torch
 
+from renderworld.precision import autocast_off, exact_float32
+
 __all__ = ["export_occupancy", "batch_to_device"]
 
 # Scene names and sample tokens become path components: keep them plain.
@@ -69,9 +71,6 @@ def export_occupancy(
         ValueError: bad batch_size, a mask of the wrong shape, or an unsafe scene/token name.
     """
     from torch.utils.data import DataLoader
-    from tqdm import tqdm
-
-    from renderworld.data import save_occ3d_labels
 
     if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size <= 0:
         raise ValueError(f"batch_size: expected a positive int, got {batch_size!r}")
@@ -82,6 +81,17 @@ def export_occupancy(
     loader = DataLoader(dataset, batch_size=batch_size, shuffle=False, num_workers=num_workers)
     was_training = model.training
     model.eval()
+    # Labels decided in float32 without TF32 (renderworld.precision.exact_float32): the same
+    # checkpoint exports the same labels on CPU and CUDA, up to float32 summation order.
+    with exact_float32(), autocast_off():
+        return _export(model, loader, out_root, grid_shape, device, progress, was_training)
+
+
+def _export(model, loader, out_root: Path, grid_shape, device, progress, was_training):
+    from tqdm import tqdm
+
+    from renderworld.data import save_occ3d_labels
+
     written: list[Path] = []
     try:
         bar = tqdm(loader, desc="export occupancy", unit="batch", disable=not progress)

@@ -18,6 +18,7 @@ from renderworld.constants import FREE_ID, NUM_SEMANTIC_CLASSES
 from renderworld.img2occ.depth_lift import _masked_mean, sample_at_labels
 from renderworld.img2occ.encoder import _norm
 from renderworld.img2occ.losses import balanced_class_weights
+from renderworld.precision import float32_boundary
 
 __all__ = ["FineSemanticHead", "pixel_class_loss"]
 
@@ -50,6 +51,7 @@ class FineSemanticHead(nn.Module):
         return self.net(torch.cat([fine, up], dim=1))
 
 
+@float32_boundary  # float32: label-pixel projection and a cross-entropy
 def pixel_class_loss(
     logits: torch.Tensor,
     k_map: torch.Tensor,

@@ -22,6 +22,7 @@ import torch.nn.functional as F
 
 from renderworld.geometry import invert_pose, project_points
 from renderworld.img2occ.depth_lift import interp_cdf
+from renderworld.precision import float32_boundary
 
 __all__ = ["LiftResult", "lift_features"]
 
@@ -48,6 +49,7 @@ class LiftResult:
     extras: torch.Tensor | None = None
 
 
+@float32_boundary  # float32: voxel centres projected into pixels (bf16: pixels off)
 def lift_features(
     features: torch.Tensor,
     cam_to_ego: torch.Tensor,

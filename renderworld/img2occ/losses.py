@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 
 from renderworld.constants import FREE_ID, IGNORE_LABEL, NUM_SEMANTIC_CLASSES
+from renderworld.precision import float32_boundary
 
 __all__ = [
     "IGNORE_LABEL",
@@ -73,6 +74,7 @@ def balanced_class_weights(labels: torch.Tensor, power: float) -> torch.Tensor:
     return torch.where(counts > 0, w, torch.ones_like(w))
 
 
+@float32_boundary  # float32: log of blended probabilities near prob_eps
 def semantic_nll_loss(
     features: torch.Tensor,
     alpha: torch.Tensor,
@@ -129,6 +131,7 @@ def semantic_nll_loss(
     return (nll * m).sum() / m.sum().clamp_min(1.0)
 
 
+@float32_boundary  # float32: moments over every LiDAR pixel: bf16 sums cancel
 def pearson_depth_loss(
     rendered: torch.Tensor,
     target: torch.Tensor,
@@ -171,6 +174,7 @@ def pearson_depth_loss(
     return ((1.0 - corr) * ok).sum() / ok.sum().clamp_min(1.0)
 
 
+@float32_boundary  # float32: relative errors of ~1e-2 are below bf16's resolution
 def relative_depth_l1_loss(
     rendered: torch.Tensor,
     target: torch.Tensor,
@@ -200,6 +204,7 @@ def relative_depth_l1_loss(
     return (err * m).sum() / m.sum().clamp_min(1.0)
 
 
+@float32_boundary  # float32: z^2 moments of depths up to 100 m
 def ray_distribution_loss(
     moments: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor
 ) -> torch.Tensor:

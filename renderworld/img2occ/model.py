@@ -43,6 +43,7 @@ from renderworld.img2occ.mirror import average_with_mirror, mirror_batch
 from renderworld.img2occ.output import Img2OccOutput, _gather_views
 from renderworld.img2occ.readout import readout_occupancy
 from renderworld.img2occ.render import RenderedViews, render_views
+from renderworld.precision import autocast_off, caller_autocast, float32_boundary, to_float32
 
 __all__ = ["Img2Occ", "Img2OccOutput"]
 
@@ -106,7 +107,11 @@ class Img2Occ(nn.Module):
         """Images → ``(gaussians, count, image_logits, fine_logits)``: the Gaussians,
         per-voxel camera visibility counts [B, V], the per-pixel depth/class logits
         [B, C, D + K, h, w] of depth-aware lifting and the fine class logits
-        [B, C, K, h_f, w_f] of ``fine_semantics`` (each None when off)."""
+        [B, C, K, h_f, w_f] of ``fine_semantics`` (each None when off).
+
+        Mixed precision (:mod:`renderworld.precision`): the encoder and the heads run under the
+        caller's autocast; their outputs are cast to float32, and the lifting's projections,
+        the depth CDFs and the Gaussians' activations run in float32 with autocast off."""
         self._check_batch(batch, _KEY_INPUTS)
         images = batch["images"]
         h_in, w_in = self.cfg.input_size
@@ -115,22 +120,34 @@ class Img2Occ(nn.Module):
                 f"images: expected [B, C, 3, {h_in}, {w_in}] (cfg.input_size), "
                 f"got {tuple(images.shape)}"
             )
+        nets = caller_autocast(images.device.type)
+        with autocast_off():
+            return self._encode(batch, images, nets)
+
+    def _encode(self, batch: dict, images: torch.Tensor, nets: torch.autocast) -> tuple:
         b, c = images.shape[:2]
         fine_logits = None
-        if self.fine_head is not None:
-            feats, fine = self.encoder(images.flatten(0, 1), return_fine=True)
-            fine_logits = self.fine_head(fine, feats)
-            fine_logits = fine_logits.view(b, c, *fine_logits.shape[1:])
-        else:
-            feats = self.encoder(images.flatten(0, 1))
+        with nets:
+            if self.fine_head is not None:
+                feats, fine = self.encoder(images.flatten(0, 1), return_fine=True)
+                fine_logits = self.fine_head(fine, feats)
+                fine_logits = fine_logits.view(b, c, *fine_logits.shape[1:])
+            else:
+                feats = self.encoder(images.flatten(0, 1))
+            image_logits = None
+            if self.depth_head is not None:
+                image_logits = self.depth_head(feats)
+                image_logits = image_logits.view(b, c, *image_logits.shape[1:])
+        # Lifted into voxels at projected (float32) positions; depth-bin softmax / cumsum and
+        # the pixel cross-entropies of these logits need float32 as well.
+        feats, fine_logits = to_float32(feats), to_float32(fine_logits)
+        image_logits = to_float32(image_logits)
         feats = feats.view(b, c, *feats.shape[1:])
         stride = self.cfg.feature_stride
         k_feat = scale_intrinsics(batch["intrinsics"].to(feats.dtype), 1.0 / stride)
-        image_logits, extra = None, {}
+        extra = {}
         if self.depth_head is not None:
             d = self.cfg.depth_bins
-            image_logits = self.depth_head(feats.flatten(0, 1))
-            image_logits = image_logits.view(b, c, *image_logits.shape[1:])
             extra = {
                 "depth_cdf": depth_cdf(image_logits[:, :, :d].flatten(0, 1)).view(
                     b, c, d + 1, *image_logits.shape[-2:]
@@ -156,7 +173,8 @@ class Img2Occ(nn.Module):
         )
         parts = [lift.features, enc] + ([lift.extras] if lift.extras is not None else [])
         vox = torch.cat(parts, dim=1).view(b, -1, *self.cfg.grid.shape)
-        g = self.head(vox, self.centres)
+        with nets:
+            g = self.head(vox, self.centres)
         if self.fine_head is not None:
             # Skip: log of the lifted (mass-weighted, renormalised) class distribution; voxels
             # no camera's surface reaches get a constant, which leaves their argmax alone.
@@ -179,6 +197,7 @@ class Img2Occ(nn.Module):
             depth_moments=self.cfg.ray_weight > 0,
         )  # fmt: skip
 
+    @float32_boundary
     def augment(self, batch: dict) -> dict:
         """Training: the batch's mirror image with probability ``cfg.mirror_prob``, else it."""
         p = self.cfg.mirror_prob
@@ -209,12 +228,19 @@ class Img2Occ(nn.Module):
             render = not (self.training and self.cfg.supervision == "3d")
         if not render:
             if self.cfg.mirror_readout and not self.training:
-                mirrored = self.encode(mirror_batch(batch))[0]
-                average_with_mirror(out.gaussians, mirrored, self.cfg.grid.shape)
+                # Encoded under the same autocast as the scene itself.
+                mirrored = self.encode(float32_boundary(mirror_batch)(batch))[0]
+                with autocast_off():
+                    average_with_mirror(out.gaussians, mirrored, self.cfg.grid.shape)
             return out
+        with autocast_off():  # rendering in float32 (see encode and renderworld.splat)
+            return self._render_output(batch, out, b)
+
+    def _render_output(self, batch: dict, out: Img2OccOutput, b: int) -> Img2OccOutput:
+        g, device = out.gaussians, out.gaussians.opacities.device
         self._check_batch(batch, ("render_intrinsics",))
         c = batch["cam_to_ego"].shape[1]
-        idx = self._pick(b, c, self.cfg.views_per_step, count.device)
+        idx = self._pick(b, c, self.cfg.views_per_step, device)
         out.view_index = idx
         out.views = self._render(
             g,
@@ -224,7 +250,7 @@ class Img2Occ(nn.Module):
         if self.cfg.adjacent_frames and "adj_cam_to_ego" in batch:
             ca = batch["adj_cam_to_ego"].shape[1]
             if ca > 0:
-                aidx = self._pick(b, ca, self.cfg.adjacent_views_per_step, count.device)
+                aidx = self._pick(b, ca, self.cfg.adjacent_views_per_step, device)
                 out.adj_index = aidx
                 out.adj_views = self._render(
                     g,
@@ -265,6 +291,7 @@ class Img2Occ(nn.Module):
         )
         return total, sem, dep, l1, ray
 
+    @float32_boundary
     def loss(self, batch: dict, output: Img2OccOutput) -> tuple[torch.Tensor, dict[str, float]]:
         """The training loss of ``cfg.supervision``, plus the depth-aware lifting's 2-D losses.
 
@@ -282,7 +309,8 @@ class Img2Occ(nn.Module):
             output: ``forward(batch)``'s result (rendered for "2d").
 
         Returns:
-            ``(total, logs)``: scalar loss with a graph and a dict of floats.
+            ``(total, logs)``: scalar loss with a graph and a dict of detached 0-d tensors
+            (no host sync per step; the trainer averages them on the device).
         """
         self._check_batch(batch, _KEY_TARGETS)
         cfg = self.cfg
@@ -296,7 +324,7 @@ class Img2Occ(nn.Module):
                 g.opacities, g.logits, batch["occ"], batch["mask_camera"], cfg.prob_eps
             )
             total = cfg.occupancy_3d_weight * bce + cfg.semantic_3d_weight * ce
-            logs = {"loss_occ3d": float(bce.detach()), "loss_sem3d": float(ce.detach())}
+            logs = {"loss_occ3d": bce.detach(), "loss_sem3d": ce.detach()}
         else:
             total, logs = self._loss_2d(batch, output, weights)
         if output.image_logits is not None:
@@ -313,7 +341,7 @@ class Img2Occ(nn.Module):
                 weights,
             )
             total = total + cfg.lift_depth_weight * dce + cfg.lift_semantic_weight * sce
-            logs.update(loss_pixel_depth=float(dce.detach()), loss_pixel_sem=float(sce.detach()))
+            logs.update(loss_pixel_depth=dce.detach(), loss_pixel_sem=sce.detach())
         if output.fine_logits is not None:
             fs = self.encoder.fine_stride
             fce = pixel_class_loss(
@@ -324,9 +352,9 @@ class Img2Occ(nn.Module):
                 cfg.fine_class_balance,
             )
             total = total + cfg.fine_semantic_weight * fce
-            logs["loss_fine_sem"] = float(fce.detach())
-        logs["loss"] = float(total.detach())
-        logs["mean_opacity"] = float(output.gaussians.opacities.detach().mean())
+            logs["loss_fine_sem"] = fce.detach()
+        logs["loss"] = total.detach()
+        logs["mean_opacity"] = output.gaussians.opacities.detach().mean()
         return total, logs
 
     def _loss_2d(self, batch: dict, output: Img2OccOutput, weights) -> tuple[torch.Tensor, dict]:
@@ -341,12 +369,12 @@ class Img2Occ(nn.Module):
             weights,
         )
         logs = {
-            "loss_sem": float(sem.detach()),
-            "loss_depth": float(dep.detach()),
-            "loss_depth_l1": float(l1.detach()),
+            "loss_sem": sem.detach(),
+            "loss_depth": dep.detach(),
+            "loss_depth_l1": l1.detach(),
         }
         if output.views.moments is not None:
-            logs["loss_ray"] = float(ray.detach())
+            logs["loss_ray"] = ray.detach()
         g = output.gaussians
         if cfg.carve_weight > 0:
             free = free_space_targets(
@@ -355,14 +383,14 @@ class Img2Occ(nn.Module):
             )  # fmt: skip
             carve = free_space_loss(g.opacities, free, cfg.prob_eps)
             total = total + cfg.carve_weight * carve
-            logs.update(loss_carve=float(carve.detach()), carved=float(free.float().mean()))
+            logs.update(loss_carve=carve.detach(), carved=free.float().mean())
         if cfg.backproject_weight > 0:
             bce, ce, _ = backprojected_loss(
                 g.opacities, g.logits, self.centres, self.grid, batch, cfg.carve_margin,
                 cfg.near, cfg.backproject_adjacent, cfg.prob_eps, cfg.backproject_class_balance,
             )  # fmt: skip
             total = total + cfg.backproject_weight * (bce + ce)
-            logs.update(loss_bp_occ=float(bce.detach()), loss_bp_sem=float(ce.detach()))
+            logs.update(loss_bp_occ=bce.detach(), loss_bp_sem=ce.detach())
         if output.adj_views is not None:
             self._check_batch(batch, ("adj_depth", "adj_semantics"))
             a_total, a_sem, a_dep, _, _ = self._view_losses(
@@ -372,8 +400,8 @@ class Img2Occ(nn.Module):
                 weights,
             )
             total = total + cfg.adjacent_weight * a_total
-            logs.update(loss_adj_sem=float(a_sem.detach()), loss_adj_depth=float(a_dep.detach()))
-        logs["gaussians_rendered"] = float(output.views.num_rendered.float().mean())
+            logs.update(loss_adj_sem=a_sem.detach(), loss_adj_depth=a_dep.detach())
+        logs["gaussians_rendered"] = output.views.num_rendered.float().mean()
         return total, logs
 
     # ------------------------------------------------------------------ readout

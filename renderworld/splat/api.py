@@ -3,32 +3,20 @@
 from __future__ import annotations
 
 import importlib.util
-from typing import NamedTuple
 
 import torch
+
+from renderworld.precision import autocast_active, autocast_off, to_float32
+from renderworld.splat.cpp_backend import cpp_available, rasterize_cpp
+from renderworld.splat.gsplat_backend import rasterize_gsplat
+from renderworld.splat.reference import rasterize_reference
+from renderworld.splat.result import DEPTH_EPS, RenderResult
+from renderworld.splat.tiled import rasterize_tiled
 
 __all__ = ["RenderResult", "rasterize", "BACKENDS", "available_backends"]
 
 #: Backend names accepted by :func:`rasterize` (plus ``"auto"``).
 BACKENDS = ("reference", "torch", "cpp", "gsplat")
-#: Accumulated alpha below which expected depth is reported as 0.
-DEPTH_EPS = 1e-10
-
-
-class RenderResult(NamedTuple):
-    """Rendered images.
-
-    Attributes:
-        features: [C, H, W, D] un-normalised ``Σ_i f_i α_i T_i`` (as gsplat; divide by ``alpha``
-            for the normalised feature, or add a background ``(1 - alpha)·bg``).
-        depth: [C, H, W] expected camera-z depth (metres), ``Σ z_i α_i T_i / alpha``; exactly 0
-            where no Gaussian contributes (alpha == 0).
-        alpha: [C, H, W] accumulated opacity ``Σ α_i T_i = 1 - T_final`` in [0, 1).
-    """
-
-    features: torch.Tensor
-    depth: torch.Tensor
-    alpha: torch.Tensor
 
 
 def _gsplat_importable() -> bool:
@@ -40,8 +28,6 @@ def available_backends(device: torch.device | str = "cpu") -> list[str]:
     device = torch.device(device)
     names = ["reference", "torch"]
     if device.type == "cpu":
-        from renderworld.splat.cpp_backend import cpp_available
-
         if cpp_available():
             names.append("cpp")
     if device.type == "cuda" and _gsplat_importable():
@@ -140,14 +126,25 @@ def rasterize(
             ``"torch"`` (tiled pure torch), ``"cpp"`` (tiled C++/OpenMP CPU kernel) or
             ``"gsplat"`` (CUDA).
 
+    Mixed precision: under ``torch.autocast`` bf16 / fp16 inputs are cast to float32 and the
+    rasterizer runs in float32 (autocast off inside); outside autocast every input must share
+    ``means``' dtype.
+
     Returns:
         :class:`RenderResult` (features [C, H, W, D], depth [C, H, W], alpha [C, H, W]) in the
-        dtype and on the device of the inputs.
+        dtype (float32 under autocast) and on the device of the inputs.
 
     Raises:
         ValueError: wrong shapes, devices, sizes, near/far, or an unknown/unusable backend.
         TypeError: non-tensor or non-floating inputs, or mixed dtypes.
     """
+    if isinstance(means, torch.Tensor) and autocast_active(means.device.type):
+        # Under autocast the inputs arrive in mixed dtypes (network outputs in bf16 / fp16);
+        # the rasterizer runs in float32: bf16's 8-bit mantissa cannot carry transmittance
+        # down to 1e-4 nor the EWA covariance inverses.
+        means, quats, scales, opacities, features, viewmats, Ks = (
+            to_float32(t) for t in (means, quats, scales, opacities, features, viewmats, Ks)
+        )
     _validate(means, quats, scales, opacities, features, viewmats, Ks, width, height, near, far)
     if backend not in BACKENDS + ("auto",):
         raise ValueError(f"backend: expected one of {('auto',) + BACKENDS}, got {backend!r}")
@@ -160,27 +157,23 @@ def rasterize(
         else:
             backend = "torch"
     args = (means, quats, scales, opacities, features, viewmats, Ks, width, height, near, far)
-    if backend == "reference":
-        from renderworld.splat.reference import rasterize_reference
-
-        feats, depth_sum, alpha = rasterize_reference(*args)
-    elif backend == "torch":
-        from renderworld.splat.tiled import rasterize_tiled
-
-        feats, depth_sum, alpha = rasterize_tiled(*args)
-    elif backend == "cpp":
-        if means.device.type != "cpu":
-            raise ValueError(f"backend: 'cpp' needs CPU tensors, got device {means.device}")
-        from renderworld.splat.cpp_backend import rasterize_cpp
-
-        feats, depth_sum, alpha = rasterize_cpp(*args)
-    else:
+    if backend == "cpp" and means.device.type != "cpu":
+        raise ValueError(f"backend: 'cpp' needs CPU tensors, got device {means.device}")
+    if backend == "gsplat":
         if means.device.type != "cuda":
             raise ValueError(f"backend: 'gsplat' needs CUDA tensors, got device {means.device}")
         if not _gsplat_importable():
             raise ValueError("backend: 'gsplat' requested but gsplat is not installed")
-        from renderworld.splat.gsplat_backend import rasterize_gsplat
-
-        return rasterize_gsplat(*args)
-    depth = depth_sum / alpha.clamp_min(DEPTH_EPS)
+    # Autocast off: projection, 2-D covariance inverses and compositing stay in the inputs'
+    # dtype (float32 under autocast) instead of bf16 matrix products.
+    with autocast_off():
+        if backend == "gsplat":
+            return rasterize_gsplat(*args)
+        if backend == "reference":
+            feats, depth_sum, alpha = rasterize_reference(*args)
+        elif backend == "torch":
+            feats, depth_sum, alpha = rasterize_tiled(*args)
+        else:
+            feats, depth_sum, alpha = rasterize_cpp(*args)
+        depth = depth_sum / alpha.clamp_min(DEPTH_EPS)
     return RenderResult(feats, depth, alpha)

@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import torch
 
+from renderworld.splat.projection import EPS2D
+from renderworld.splat.result import DEPTH_EPS, RenderResult
+
 __all__ = ["rasterize_gsplat"]
 
 
@@ -23,10 +26,7 @@ def rasterize_gsplat(
     Returns:
         :class:`renderworld.splat.RenderResult` on the inputs' CUDA device.
     """
-    import gsplat  # lazy: an optional CUDA-only dependency
-
-    from renderworld.splat.api import DEPTH_EPS, RenderResult
-    from renderworld.splat.projection import EPS2D
+    import gsplat  # lazy: an optional CUDA-only dependency (imports CUDA on import)
 
     # Zero quaternions are a reported NaN source in gsplat: give them the identity rotation (the
     # CPU backends' limit, with a zero gradient there too).

@@ -140,7 +140,8 @@ class SceneTokenizer(nn.Module):
         expected = tuple(self.cfg.grid_shape)
         if occ.dim() != 4 or tuple(occ.shape[1:]) != expected:
             raise ValueError(f"occ: expected shape [B, {expected}], got {tuple(occ.shape)}")
-        lo, hi = int(occ.min()), int(occ.max())
+        lo, hi = torch.aminmax(occ)
+        lo, hi = int(lo), int(hi)  # one host sync (aminmax), not two
         if lo < 0 or hi >= NUM_OCC3D_CLASSES:
             raise ValueError(
                 f"occ: expected Occ3D class ids in [0, {NUM_OCC3D_CLASSES - 1}], "

@@ -102,8 +102,8 @@ def lovasz_softmax(
     errors_sorted, perm = torch.sort(errors, dim=1, descending=True)
     per_class = (errors_sorted * jaccard_increments(torch.gather(fg, 1, perm))).sum(1)  # [K]
     if present_only:
-        present = fg.sum(1) > 0  # never empty: every element has a class
-        return per_class[present].mean()
+        present = (fg.sum(1) > 0).to(per_class.dtype)  # never all 0: every element has a class
+        return (per_class * present).sum() / present.sum()  # no boolean indexing: no host sync
     return per_class.mean()
 
 

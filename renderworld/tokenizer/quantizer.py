@@ -22,6 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from renderworld.precision import float32_boundary
+
 __all__ = ["VectorQuantizer", "QuantizerOutput", "code_usage_stats"]
 
 
@@ -105,6 +107,9 @@ class VectorQuantizer(nn.Module):
         self.register_buffer("last_used", torch.zeros(num_codes, dtype=torch.int64))
         self.register_buffer("last_restart", torch.zeros(num_codes, dtype=torch.int64))
         self.register_buffer("initialized", torch.tensor(False))
+        # Host-side copy of ``initialized`` once it is True: reading the buffer every step
+        # would wait for the GPU (a host sync); a loaded state resets it.
+        self._known_initialized = False
 
     # ------------------------------------------------------------------ public
     def lookup(self, indices: torch.Tensor) -> torch.Tensor:
@@ -120,13 +125,16 @@ class VectorQuantizer(nn.Module):
         d = cb.pow(2).sum(1)[None, :] - 2.0 * flat @ cb.t()
         return d.argmin(1).reshape(b, h, w)
 
+    @float32_boundary  # nearest-code distances and EMA: bf16 matmuls pick other codes
     def forward(self, z: torch.Tensor) -> QuantizerOutput:
         """Quantize z [B, C, h, w]; in training mode also update the codebook and counters."""
         if z.dim() != 4 or z.shape[1] != self.dim:
             raise ValueError(f"z: expected [B, {self.dim}, h, w], got {tuple(z.shape)}")
-        z = z.float()  # distances and EMA in float32 even under autocast
-        if self.training and not bool(self.initialized):
-            self._init_from(z)
+        z = z.float()
+        if self.training and not self._known_initialized:
+            if not bool(self.initialized):
+                self._init_from(z)
+            self._known_initialized = True
         idx = self.assign(z)
         restarted = torch.zeros((), device=z.device)
         if self.training:
@@ -184,7 +192,7 @@ class VectorQuantizer(nn.Module):
     def _count_and_restart(self, z: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         used = torch.bincount(idx.reshape(-1), minlength=self.num_codes) > 0
         self.step.add_(1)
-        self.last_used.masked_fill_(used, int(self.step))
+        self.last_used.masked_fill_(used, self.step)  # a tensor value: no host sync
         if self.dead_code_steps <= 0:
             return torch.zeros((), device=z.device)
         idle = self.step - torch.maximum(self.last_used, self.last_restart)
@@ -198,3 +206,7 @@ class VectorQuantizer(nn.Module):
                 self.ema_size[dead] = 1.0
             self.last_restart[dead] = self.step
         return torch.tensor(float(n_dead), device=z.device)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        self._known_initialized = False  # re-read ``initialized`` from the loaded state
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

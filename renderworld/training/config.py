@@ -116,8 +116,9 @@ class TrainerConfig:
             (0, 1) and validate, checkpoint (``model``) and read out the average; the trained
             weights are checkpointed as ``model_raw`` (:mod:`renderworld.training.ema`).
             None or 0: off.
-        precision: ``"32"``, ``"bf16"`` or ``"fp16"``. Mixed precision runs on CUDA only; on
-            CPU it falls back to 32-bit with a warning.
+        precision: ``"32"``, ``"bf16"`` or ``"fp16"`` (autocast on CUDA or CPU; fp16 with a
+            gradient scaler). Networks run in it, geometry, rendering and losses in float32
+            (:mod:`renderworld.precision`).
         device: ``"auto"`` (CUDA if available), ``"cpu"`` or ``"cuda"``.
         val_every: Validate every this many optimizer steps (None or 0: only at the end).
         log_every: Log training loss and throughput every this many optimizer steps.

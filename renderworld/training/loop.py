@@ -1,10 +1,11 @@
 """The training loop: one ``Trainer`` drives any registered ``Stage``.
 
-Per optimizer step: ``grad_accum`` micro-batches (DDP gradient sync only on the last), AMP on
-CUDA, gradient clipping, optimizer and scheduler step. Every ``log_every`` steps the rank-summed
-training loss and throughput are logged; every ``val_every`` steps the stage's metrics are
-computed over the rank-sharded validation set; ``last.pt`` every ``ckpt_every`` steps and at the
-end, ``best.pt`` when the monitored metric improves. A time budget stops the run cleanly.
+Per optimizer step: ``grad_accum`` micro-batches (DDP gradient sync only on the last), autocast
+(bf16, or fp16 with a gradient scaler; CUDA or CPU), gradient clipping, optimizer and scheduler
+step. Every ``log_every`` steps the rank-summed training loss and throughput are logged; every
+``val_every`` steps the stage's metrics are computed over the rank-sharded validation set;
+``last.pt`` every ``ckpt_every`` steps and at the end, ``best.pt`` when the monitored metric
+improves. A time budget stops the run cleanly.
 """
 
 from __future__ import annotations
@@ -100,7 +101,9 @@ class Trainer:
                 find_unused_parameters=tcfg.find_unused_parameters,
             )
         self.optimizer = build_optimizer(self.model, ocfg, stage.param_groups(self.model))
-        self.scaler = torch.amp.GradScaler("cuda", enabled=self.precision == "fp16")
+        # fp16 overflows where bf16 does not: its loss is scaled, and a step whose gradients
+        # overflow is skipped (the scale halves) instead of raising below.
+        self.scaler = torch.amp.GradScaler(info.device.type, enabled=self.precision == "fp16")
 
         self.sampler = ShardedSampler(
             len(self.train_set),

@@ -23,19 +23,32 @@ from renderworld.training.seed import rng_isolated
 __all__ = ["autocast_context", "effective_precision", "build_val_loader", "run_validation"]
 
 
+#: Device types with an autocast implementation used here.
+_AUTOCAST_DEVICES = ("cuda", "cpu")
+
+
 def autocast_context(precision: str, device: torch.device) -> Any:
-    """Autocast for ``"bf16"``/``"fp16"`` on CUDA; a no-op otherwise."""
-    if device.type != "cuda" or precision == "32":
+    """Autocast for ``"bf16"``/``"fp16"`` on CUDA or CPU; a no-op for ``"32"``.
+
+    Which parts then run in the low precision is the model's business
+    (:mod:`renderworld.precision`): networks do, geometry, rendering and losses stay float32.
+    """
+    if precision == "32" or device.type not in _AUTOCAST_DEVICES:
         return nullcontext()
     dtype = torch.bfloat16 if precision == "bf16" else torch.float16
-    return torch.autocast(device_type="cuda", dtype=dtype)
+    return torch.autocast(device_type=device.type, dtype=dtype)
 
 
 def effective_precision(precision: str, device: torch.device) -> str:
-    """Mixed precision is CUDA-only here: on CPU fall back to 32-bit, with a warning."""
-    if precision != "32" and device.type != "cuda":
+    """``precision`` where autocast exists (CUDA, CPU); 32-bit elsewhere, with a warning.
+
+    On CPU mixed precision runs too (it checks the numerics of a GPU configuration on any
+    machine), though it is rarely faster there than 32-bit.
+    """
+    if precision != "32" and device.type not in _AUTOCAST_DEVICES:
         warnings.warn(
-            f"trainer.precision={precision!r} needs CUDA; training on {device} in 32-bit",
+            f"trainer.precision={precision!r} needs CUDA or CPU autocast; training on {device} "
+            "in 32-bit",
             RuntimeWarning,
             stacklevel=2,
         )

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from renderworld.precision import float32_boundary
 from renderworld.world.model import WorldModelOutput
 
 __all__ = ["WorldModelTargets", "teacher_forcing_split", "world_model_loss"]
@@ -65,6 +66,7 @@ def teacher_forcing_split(
     return inputs, WorldModelTargets(tokens[:, 1:], displacements, tv)
 
 
+@float32_boundary  # float32: cumulative trajectory sums in metres and cross-entropies
 def world_model_loss(
     outputs: WorldModelOutput,
     targets: WorldModelTargets,

@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from renderworld.constants import COMMANDS
+from renderworld.precision import autocast_off, to_float32
 from renderworld.world.blocks import Downsample, EgoTemporalBlock, SceneBlock, UpFuse
 from renderworld.world.config import WorldModelConfig
 
@@ -153,13 +154,6 @@ class WorldModel(nn.Module):
         b, t = tokens.shape[:2]
         if not 1 <= t <= cfg.max_frames:
             raise ValueError(f"tokens: expected 1..{cfg.max_frames} frames, got {t}")
-        for g, k in enumerate(cfg.codebook_sizes):
-            codes = tokens[:, :, g]
-            if codes.numel() and (int(codes.min()) < 0 or int(codes.max()) >= k):
-                raise ValueError(
-                    f"tokens: codebook {g} codes must lie in [0, {k}), got "
-                    f"[{int(codes.min())}, {int(codes.max())}]"
-                )
         if not isinstance(displacements, torch.Tensor) or not displacements.is_floating_point():
             raise TypeError("displacements: expected a floating-point tensor")
         if tuple(displacements.shape) != (b, t - 1, 2):
@@ -167,15 +161,31 @@ class WorldModel(nn.Module):
                 f"displacements: expected [B, T-1, 2] = [{b}, {t - 1}, 2], "
                 f"got {tuple(displacements.shape)}"
             )
-        if not torch.isfinite(displacements).all():
-            raise ValueError("displacements: expected finite values, got NaN or inf")
         if not isinstance(command, torch.Tensor) or command.dtype != torch.int64:
             raise TypeError(
                 f"command: expected an int64 tensor, got {getattr(command, 'dtype', command)}"
             )
         if tuple(command.shape) != (b,):
             raise ValueError(f"command: expected shape [{b}], got {tuple(command.shape)}")
-        if command.numel() and (int(command.min()) < 0 or int(command.max()) >= len(COMMANDS)):
+        # The value checks read back in one host sync (each would otherwise wait for the GPU).
+        dev = tokens.device
+        flags = [
+            ((tokens[:, :, g] < 0) | (tokens[:, :, g] >= k)).any()
+            for g, k in enumerate(cfg.codebook_sizes)
+        ]
+        flags.append(~torch.isfinite(displacements).all().to(dev))
+        flags.append(((command < 0) | (command >= len(COMMANDS))).any().to(dev))
+        bad = torch.stack(flags).tolist()
+        for g, k in enumerate(cfg.codebook_sizes):
+            if bad[g]:
+                codes = tokens[:, :, g]
+                raise ValueError(
+                    f"tokens: codebook {g} codes must lie in [0, {k}), got "
+                    f"[{int(codes.min())}, {int(codes.max())}]"
+                )
+        if bad[-2]:
+            raise ValueError("displacements: expected finite values, got NaN or inf")
+        if bad[-1]:
             raise ValueError(f"command: expected indices into {COMMANDS}, got {command.tolist()}")
 
     # ------------------------------------------------------------------ forward
@@ -251,7 +261,9 @@ class WorldModel(nn.Module):
                 )
                 for g, lg in enumerate(logits)
             ]
-        raw = self.ego_head(ego).view(b, t, len(COMMANDS), 2)
+        # The trajectory head in float32: bf16 would round displacements of ~10 m by ~4 cm.
+        with autocast_off():
+            raw = self.ego_head(to_float32(ego)).view(b, t, len(COMMANDS), 2)
         if cfg.cv_residual:
             # Prior for d[i]: the displacement into frame i, d[i-1] (none for frame 0).
             prior = torch.zeros(b, start + t, 2, dtype=raw.dtype, device=raw.device)

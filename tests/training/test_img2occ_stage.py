@@ -216,18 +216,20 @@ def test_eval_tool_uses_the_stored_threshold_and_writes_picture_and_table(traine
 
 
 def test_export_tool_writes_labels_readable_by_the_sequence_dataset(trained, tmp_path):
+    """Exported on CPU, read out again here on CPU: bit-identical labels (same device, same
+    float32 kernels; across devices see test_cuda_export_matches_the_cpu_export)."""
     root, infos, run, _ = trained
     ckpt, out = run / "checkpoints" / "last.pt", tmp_path / "pseudo"
     proc = subprocess.run(
         [PYTHON, EXPORT, f"ckpt={ckpt}", f"data_root={root}", f"infos_dir={infos}", f"out={out}",
-         "progress=false"],
+         "progress=false", "device=cpu"],
         cwd=tmp_path, env=subprocess_env(), capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "exported 16 samples {'train': 8, 'val': 8}" in proc.stdout
     files = sorted((out / "gts").glob("*/*/labels.npz"))
     assert len(files) == 16
-    model, _ = load_img2occ(ckpt)
+    model, _ = load_img2occ(ckpt, "cpu")
     val = Img2OccDataset(load_infos(infos, "val"), root, (56, 96), (27, 48), "coarse")
     item = val[3]
     meta = item["meta"]
@@ -249,6 +251,31 @@ def test_export_tool_writes_labels_readable_by_the_sequence_dataset(trained, tmp
         50,
         4,
     ]
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_export_matches_the_cpu_export(trained, tmp_path):
+    """The same checkpoint exported on CUDA and on CPU: labels are decided in float32 with TF32
+    off (renderworld.precision.exact_float32), so only voxels whose opacity or class score sits
+    within float32 summation-order rounding of a threshold / tie may differ: at most 0.1 %."""
+    root, infos, run, _ = trained
+    ckpt = run / "checkpoints" / "last.pt"
+    labels = {}
+    for device in ("cpu", "cuda"):
+        out = tmp_path / device
+        proc = subprocess.run(
+            [PYTHON, EXPORT, f"ckpt={ckpt}", f"data_root={root}", f"infos_dir={infos}",
+             f"out={out}", "progress=false", f"device={device}"],
+            cwd=tmp_path, env=subprocess_env(), capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+        files = sorted((out / "gts").glob("*/*/labels.npz"))
+        labels[device] = np.stack(
+            [load_occ3d_labels(f).semantics for f in files]
+        )  # same relative paths, same order
+    differ = float((labels["cpu"] != labels["cuda"]).mean())
+    assert differ <= 1e-3, f"{differ:.2e} of voxels differ between the CPU and CUDA exports"
 
 
 def test_export_refuses_another_stage_checkpoint(converted, tmp_path):

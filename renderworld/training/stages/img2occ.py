@@ -37,6 +37,7 @@ from torch.utils.data import DataLoader, Dataset, default_collate
 from renderworld.constants import OCC3D_CLASSES
 from renderworld.data.cache import CachedDataset
 from renderworld.img2occ import Img2Occ, Img2OccConfig, draw_views
+from renderworld.precision import autocast_off, exact_float32
 from renderworld.training.checkpoint import (
     check_state_dict_keys,
     load_checkpoint,
@@ -240,30 +241,36 @@ class Img2OccStage(ThresholdMixin, Stage):
     def evaluate(self, model: nn.Module, loader: Any) -> dict[str, torch.Tensor]:
         raw = model.module if hasattr(model, "module") else model
         device = next(raw.parameters()).device
+        # Summed on the model's device: no host sync per validation batch.
         stats = {
-            "confusion_cam": torch.zeros(18, 18, dtype=torch.float64),
-            "confusion_lidar": torch.zeros(18, 18, dtype=torch.float64),
-            "confusion_full": torch.zeros(18, 18, dtype=torch.float64),
-            "samples": torch.zeros((), dtype=torch.float64),
+            "confusion_cam": torch.zeros(18, 18, dtype=torch.float64, device=device),
+            "confusion_lidar": torch.zeros(18, 18, dtype=torch.float64, device=device),
+            "confusion_full": torch.zeros(18, 18, dtype=torch.float64, device=device),
+            "samples": torch.zeros((), dtype=torch.float64, device=device),
         }
-        for batch in loader:
-            missing = [k for k in ("occ", "mask_camera", "mask_lidar") if k not in batch]
-            if missing:
-                tokens = batch.get("meta", {}).get("sample_token", "?")
-                raise ValueError(
-                    f"validation batch (samples {tokens}) lacks {missing}: the Occ3D protocol "
-                    "needs Occ3D ground truth (gts/<scene>/<token>/labels.npz) for every "
-                    "validation sample"
-                )
-            batch = self.transfer_batch(batch, device)
-            pred = raw.readout(raw(batch, render=False))
-            occ = batch["occ"]
-            stats["confusion_cam"] += confusion_stats(pred, occ, batch["mask_camera"]).cpu()
-            stats["confusion_lidar"] += confusion_stats(pred, occ, batch["mask_lidar"]).cpu()
-            stats["confusion_full"] += confusion_stats(pred, occ).cpu()
-            stats["samples"] += float(occ.shape[0])
-        dev = torch.device(device)
-        return {k: v.to(dev) for k, v in stats.items()}
+        # The readout decides labels: float32 without TF32 under any training precision, so a
+        # checkpoint scores the same on CPU and CUDA (renderworld.precision.exact_float32).
+        with exact_float32(), autocast_off():
+            for batch in loader:
+                self._evaluate_batch(raw, batch, device, stats)
+        return stats
+
+    def _evaluate_batch(self, raw: nn.Module, batch: Any, device, stats: dict) -> None:
+        missing = [k for k in ("occ", "mask_camera", "mask_lidar") if k not in batch]
+        if missing:
+            tokens = batch.get("meta", {}).get("sample_token", "?")
+            raise ValueError(
+                f"validation batch (samples {tokens}) lacks {missing}: the Occ3D protocol "
+                "needs Occ3D ground truth (gts/<scene>/<token>/labels.npz) for every "
+                "validation sample"
+            )
+        batch = self.transfer_batch(batch, device)
+        pred = raw.readout(raw(batch, render=False))
+        occ = batch["occ"]
+        stats["confusion_cam"] += confusion_stats(pred, occ, batch["mask_camera"])
+        stats["confusion_lidar"] += confusion_stats(pred, occ, batch["mask_lidar"])
+        stats["confusion_full"] += confusion_stats(pred, occ)
+        stats["samples"] += occ.shape[0]
 
     def compute_metrics(self, stats: dict[str, torch.Tensor]) -> dict[str, float]:
         out = occupancy_metrics(stats["confusion_cam"], "cam/")

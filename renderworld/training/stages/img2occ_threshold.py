@@ -25,6 +25,7 @@ from renderworld.constants import OCC3D_CLASSES
 from renderworld.img2occ import Img2Occ, choose_threshold
 from renderworld.img2occ.calibration import DEFAULT_OFFSETS
 from renderworld.img2occ.readout import DEFAULT_THRESHOLDS
+from renderworld.precision import autocast_off, exact_float32
 from renderworld.training.checkpoint import load_checkpoint, save_checkpoint
 
 __all__ = ["ThresholdMixin"]
@@ -100,10 +101,12 @@ class ThresholdMixin:
         device = next(model.parameters()).device
         batches = (self.transfer_batch(b, device) for b in self._loader(data))
         initial = float(model.occupancy_threshold)
-        value, scores = choose_threshold(
-            model, batches, candidates, criterion, True, per_class, offsets, offset_candidates,
-            rounds,
-        )  # fmt: skip
+        # Labels decided in float32 without TF32: the same choice on CPU and CUDA.
+        with exact_float32(), autocast_off():
+            value, scores = choose_threshold(
+                model, batches, candidates, criterion, True, per_class, offsets,
+                offset_candidates, rounds,
+            )  # fmt: skip
         return {
             "value": value,
             "per_class": (

@@ -26,7 +26,6 @@ one pass and one table (see
 from __future__ import annotations
 
 import warnings
-from contextlib import nullcontext
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
@@ -38,6 +37,7 @@ from torch.utils.data import Dataset
 
 from renderworld.data import load_infos
 from renderworld.metrics import PlanningMetric
+from renderworld.precision import autocast_off
 from renderworld.tokenizer import SceneTokenizer, Tokens
 from renderworld.training.checkpoint import CheckpointError, load_checkpoint
 from renderworld.training.registry import Stage, register_stage, sum_count
@@ -72,12 +72,6 @@ __all__ = [
 
 
 _ENCODE_CHUNK = 16  # frames per tokenizer call (bounds memory on the Occ3D grid)
-
-
-def _no_autocast(device: torch.device):
-    if device.type == "cuda":
-        return torch.autocast(device_type="cuda", enabled=False)
-    return nullcontext()
 
 
 @register_stage("world_model")
@@ -174,7 +168,7 @@ class WorldModelStage(Stage):
         for c in range(0, len(names), _ENCODE_CHUNK):
             chunk = where[c : c + _ENCODE_CHUNK]
             x = torch.stack([occ[i, j] for i, j in chunk]).to(device)
-            with _no_autocast(device):
+            with autocast_off():  # the frozen tokenizer's codes in float32 on every device
                 idx = tok.encode(x).indices
             store = torch.int16 if max(tok.cfg.codebook_sizes) <= 2**15 else torch.int32
             for key, codes in zip(names[c : c + _ENCODE_CHUNK], idx.to("cpu", store)):
@@ -328,7 +322,7 @@ class WorldModelStage(Stage):
             )
         tok = self._tokenizer_on(device, setting.tokenizer)
         ro = model.rollout(tokens[:, :h], disp[:, : h - 1], batch["command"].long(), steps=f)
-        with _no_autocast(device):
+        with autocast_off():  # the frozen tokenizer's codes in float32 on every device
             names = tok.cfg.codebook_names
             frames = [
                 tok.decode(Tokens(ro.tokens[:, k], tok.cfg.codebook_sizes, names)) for k in range(f)
