@@ -9,9 +9,9 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from renderworld.constants import FREE_ID, GRIDS
+from renderworld.pipeline.main_job import _report
+from renderworld.pipeline.runner import StepResult
 from renderworld.training.figures import bev_forecast_figure
-from renderworld.training.pipeline import StepResult
-from renderworld.training.pipeline_main import _report
 from renderworld.training.stages.world_model_report import write_report
 
 

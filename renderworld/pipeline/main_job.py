@@ -1,7 +1,7 @@
 """The main job's steps and report (``tools/run_pipeline.py``, ``make demo``).
 
 Steps run as subprocesses of the package's own tools, so each is also a command a user can run
-by hand; ``renderworld.training.pipeline`` skips the ones whose inputs did not change.
+by hand; ``renderworld.pipeline.runner`` skips the ones whose inputs did not change.
 """
 
 from __future__ import annotations
@@ -11,15 +11,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from renderworld.training.pipeline import Step, run_steps
-from renderworld.training.report import (
-    bev_image,
+from renderworld.pipeline.report import (
     load_json,
     metrics_table,
     per_class_table,
     plot_training_curves,
     write_report,
 )
+from renderworld.pipeline.runner import Step, run_steps
+from renderworld.training.figures import bev_image
 
 __all__ = ["main_job_steps", "run_main_job"]
 
