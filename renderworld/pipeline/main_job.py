@@ -20,6 +20,7 @@ from renderworld.pipeline.report import (
 )
 from renderworld.pipeline.runner import Step, run_steps
 from renderworld.training.figures import bev_image
+from renderworld.training.schedule import read_schedule
 
 __all__ = ["main_job_steps", "run_main_job"]
 
@@ -256,6 +257,25 @@ def _demote_headings(md: str, levels: int = 2) -> str:
                      for line in md.splitlines())  # fmt: skip
 
 
+def schedule_cell(run_dir: Path) -> str:
+    """The run table's schedule cell of a training step: steps done, or where the guard stopped it.
+
+    Args:
+        run_dir: the step's output folder; a training run holds ``schedule.json``.
+
+    Returns:
+        ``"2700 of 2700 steps"``, ``"**stopped at step 1795 of 2700** (time guard 11.25 min)"``,
+        or ``"–"`` for a step that does not train.
+    """
+    record = read_schedule(run_dir)
+    if not record:
+        return NA
+    done, total = int(record["step"]), int(record["max_steps"])
+    if record.get("stopped_early"):
+        return f"**stopped at step {done} of {total}** (time guard {record['max_minutes']:g} min)"
+    return f"{done} of {total} steps"
+
+
 def _report(cfg: Any, out: Path, results, seconds: float) -> Path:
     # Imported here: the main job's own process stays light until it writes the report.
     from renderworld.training.stages.world_model_pictures import BEV_PNG, TRAJ_PNG
@@ -265,9 +285,10 @@ def _report(cfg: Any, out: Path, results, seconds: float) -> Path:
     sim = load_json(data / "sim_report.json")
     sections = []
     steps = "\n".join(
-        ["| step | this run | seconds (when it ran) |", "|---|---|---|"]
-        + [f"| {r.name} | {r.status} | {r.seconds:.0f} |" for r in results]
-    )
+        ["| step | this run | seconds (when it ran) | schedule |", "|---|---|---|---|"]
+        + [f"| {r.name} | {r.status} | {r.seconds:.0f} | {schedule_cell(out / r.name)} |"
+           for r in results]
+    )  # fmt: skip
     made = sum(r.seconds for r in results)
     sections.append(
         (
