@@ -1,4 +1,4 @@
-"""The main job's steps and report (``tools/run_pipeline.py``, ``make demo``).
+"""The main job's steps (``tools/run_pipeline.py``, ``make demo``); its report: ``job_report``.
 
 Steps run as subprocesses of the package's own tools, so each is also a command a user can run
 by hand; ``renderworld.pipeline.runner`` skips the ones whose inputs did not change.
@@ -8,29 +8,15 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from renderworld.pipeline.report import (
-    load_json,
-    metrics_table,
-    per_class_table,
-    plot_training_curves,
-    write_report,
-)
+from renderworld.constants import SIM_VERSION
+from renderworld.pipeline.job_report import main_job_report
 from renderworld.pipeline.runner import Step, run_steps
-from renderworld.training.figures import bev_image
-from renderworld.training.schedule import read_schedule
 
 __all__ = ["main_job_steps", "run_main_job"]
-
-NA = "–"
-ABSENT = (
-    "class absent from both GT and prediction on this split (IoU 0/0 is undefined; the class is "
-    "left out of the mIoU)"
-)
-
-VERSION = "v1.0-mini"
 
 
 def _train_and_eval(
@@ -93,282 +79,153 @@ def _train_and_eval(
     ]
 
 
-def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
-    """The pipeline's steps for a ``configs/pipeline.yaml`` config."""
-    py = sys.executable
-    out = Path(str(cfg.out)).resolve()
-    data = Path(str(cfg.data_root)).resolve()
-    infos = data / "renderworld_infos" / VERSION
-    extra = tuple(str(x) for x in cfg.train_overrides)
-    pkg, conf = repo / "renderworld", repo / "configs"
-    common = (f"dataset.data_root={data}",)
+@dataclass(frozen=True)
+class _Paths:
+    """Where the main job reads and writes, and what each training step fingerprints."""
 
-    def configs(stage: str, experiment: str) -> tuple[Path, ...]:
+    repo: Path
+    out: Path
+    data: Path
+    extra: tuple[str, ...]
+
+    @property
+    def common(self) -> tuple[str, ...]:
+        return (f"dataset.data_root={self.data}",)
+
+    def code(self, *packages: str) -> tuple[Path, ...]:
+        return tuple(self.repo / "renderworld" / p for p in packages)
+
+    def configs(self, stage: str, experiment: str) -> tuple[Path, ...]:
+        conf = self.repo / "configs"
         return (conf / "stage" / f"{stage}.yaml", conf / "experiment" / f"{experiment}.yaml")
 
-    steps = [
+    def ckpt(self, step: str) -> Path:
+        return self.out / step / "checkpoints" / "best.pt"
+
+
+def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
+    """The pipeline's steps for a ``configs/pipeline.yaml`` config."""
+    p = _Paths(
+        repo=repo,
+        out=Path(str(cfg.out)).resolve(),
+        data=Path(str(cfg.data_root)).resolve(),
+        extra=tuple(str(x) for x in cfg.train_overrides),
+    )
+    steps = _data_steps(cfg, p) + _occupancy_steps(p)
+    if (repo / "configs" / "stage" / "world_model.yaml").is_file():
+        steps += _world_model_steps(p)
+    return steps
+
+
+def _data_steps(cfg: Any, p: _Paths) -> list[Step]:
+    """Simulate the fixture, then convert it (infos, trajectories, 2-D labels)."""
+    py, conf = sys.executable, p.repo / "configs"
+    return [
         Step(
             "fixtures",
             f"simulate the {cfg.preset} fixture in nuScenes format",
             (
                 py,
                 "tools/make_fixtures.py",
-                f"out={data}",
+                f"out={p.data}",
                 f"preset={cfg.preset}",
                 f"seed={cfg.seed}",
                 "overwrite=true",
             ),  # fmt: skip
-            data,
-            inputs=(pkg / "sim", conf / "sim"),
+            p.data,
+            inputs=(*p.code("sim"), conf / "sim"),
         ),
         Step(
             "infos",
             "convert: infos, ego trajectories, LiDAR-projected 2-D labels",
-            (py, "tools/create_data.py", f"data_root={data}", f"version={VERSION}"),
-            infos,
+            (py, "tools/create_data.py", f"data_root={p.data}", f"version={SIM_VERSION}"),
+            p.data / "renderworld_infos" / SIM_VERSION,
             depends_on=("fixtures",),
-            inputs=(repo / "data_converters", conf / "create_data.yaml"),
+            inputs=(p.repo / "data_converters", conf / "create_data.yaml"),
         ),
     ]
-    steps += _train_and_eval(
+
+
+def _occupancy_steps(p: _Paths) -> list[Step]:
+    """The tokenizer on GT occupancy; Img2Occ, its evaluation and its pseudo labels."""
+    steps = _train_and_eval(
         "tokenizer",
         ("train the AM-VAE tokenizer on GT occupancy",
          "evaluate tokenizer reconstruction on mini_val"),  # fmt: skip
-        "tokenizer_mini", common, out, ("infos",),
-        (pkg / "tokenizer", *configs("tokenizer", "tokenizer_mini")), extra,
+        "tokenizer_mini", p.common, p.out, ("infos",),
+        (*p.code("tokenizer"), *p.configs("tokenizer", "tokenizer_mini")), p.extra,
     )  # fmt: skip
-    i2o = out / "img2occ" / "checkpoints" / "best.pt"
-    pseudo = out / "pseudo_labels"
     steps += _train_and_eval(
         "img2occ",
         ("train Img2Occ (semantic Gaussians) from LiDAR-projected 2-D labels",
          "evaluate 3-D occupancy on mini_val (Occ3D protocol, camera mask)"),  # fmt: skip
-        "img2occ_mini", common, out, ("infos",),
-        (pkg / "img2occ", pkg / "splat", *configs("img2occ", "img2occ_mini")), extra,
+        "img2occ_mini", p.common, p.out, ("infos",),
+        (*p.code("img2occ", "splat"), *p.configs("img2occ", "img2occ_mini")), p.extra,
     )  # fmt: skip
+    pseudo = p.out / "pseudo_labels"
     steps.append(
         Step(
             "pseudo_labels",
             "export Img2Occ occupancy as Occ3D-layout pseudo labels",
-            (py, "tools/export_occ.py", f"ckpt={i2o}", f"data_root={data}", f"out={pseudo}"),
+            (
+                sys.executable,
+                "tools/export_occ.py",
+                f"ckpt={p.ckpt('img2occ')}",
+                f"data_root={p.data}",
+                f"out={pseudo}",
+            ),  # fmt: skip
             pseudo,
             depends_on=("img2occ",),
         )
     )
-    if (conf / "stage" / "world_model.yaml").is_file():
-        tok = (f"stage.tokenizer_ckpt={out / 'tokenizer' / 'checkpoints' / 'best.pt'}",)
-        wm_inputs = (pkg / "world", *configs("world_model", "world_model_mini"))
-        steps += _train_and_eval(
-            "world_model",
-            ("train the world model on GT occupancy tokens (3D-Occ setting)", ""),
-            "world_model_mini", (*common, *tok), out, ("tokenizer",), wm_inputs, extra,
-            evaluate=False,
-        )  # fmt: skip
-        # Camera setting (paper): its own tokenizer, trained on the pseudo labels; the world
-        # model_eval step scores it in the Camera rows (camera_tokenizer_ckpt).
-        cam_tok = out / "tokenizer_camera" / "checkpoints" / "best.pt"
-        steps += _train_and_eval(
-            "tokenizer_camera",
-            ("train the AM-VAE tokenizer on Img2Occ pseudo labels (Camera setting)", ""),
-            "tokenizer_mini", (*common, f"stage.occ_root={pseudo}"), out, ("pseudo_labels",),
-            (pkg / "tokenizer", *configs("tokenizer", "tokenizer_mini")), extra, evaluate=False,
-        )  # fmt: skip
-        steps += _train_and_eval(
-            "world_model_camera",
-            ("train the world model on Img2Occ pseudo labels (Camera setting)", ""),
-            "world_model_mini",
-            (*common, f"stage.tokenizer_ckpt={cam_tok}", f"stage.occ_root={pseudo}"), out,
-            ("tokenizer_camera", "pseudo_labels"), wm_inputs, extra, evaluate=False,
-        )  # fmt: skip
-        # One evaluation, one table: both settings, model and baselines (issue 9 item 4).
-        steps.append(
-            Step(
-                "world_model_eval",
-                "forecast and plan on mini_val beside the baselines: 3D-Occ and Camera settings",
-                (
-                    py,
-                    "tools/eval.py",
-                    "experiment=world_model_mini",
-                    *common,
-                    *tok,
-                    f"ckpt={out / 'world_model' / 'checkpoints' / 'best.pt'}",
-                    f"pseudo_labels={pseudo}",
-                    f"camera_ckpt={out / 'world_model_camera' / 'checkpoints' / 'best.pt'}",
-                    f"camera_tokenizer_ckpt={cam_tok}",
-                    f"run_dir={out / 'world_model_eval'}",
-                ),  # fmt: skip
-                out / "world_model_eval",
-                depends_on=(
-                    "world_model",
-                    "tokenizer_camera",
-                    "world_model_camera",
-                    "pseudo_labels",
-                ),  # fmt: skip
-            )
-        )
     return steps
 
 
-def _bev_figure(cfg: Any, out: Path) -> Path | None:
-    """GT vs tokenizer reconstruction, bird's-eye view, for one mini_val frame."""
-    ckpt = out / "tokenizer" / "checkpoints" / "best.pt"
-    if not ckpt.is_file():
-        return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import torch
-
-    from renderworld.data import load_infos
-    from renderworld.training.stages.tokenizer import OccFrames, load_tokenizer
-
-    data = Path(str(cfg.data_root)).resolve()
-    tok = load_tokenizer(ckpt)
-    grid = tuple(tok.cfg.grid_shape)
-    from renderworld.constants import GRIDS
-
-    spec = next(g for g in GRIDS.values() if tuple(g.shape) == grid)
-    frames = OccFrames(load_infos(data / "renderworld_infos" / VERSION, "val"), data, spec)
-    occ = frames[len(frames) // 2]["occ"][None]
-    with torch.no_grad():
-        rec = tok.decode(tok.encode(occ))[0].numpy()
-    fig, axes = plt.subplots(1, 2, figsize=(7, 3.6))
-    for ax, img, title in zip(
-        axes,
-        (bev_image(occ[0].numpy()), bev_image(rec)),
-        ("GT occupancy", "AM-VAE recon."),
-        strict=True,
-    ):
-        ax.imshow(img)
-        ax.set_title(title)
-        ax.axis("off")
-    fig.tight_layout()
-    path = out / "figures" / "bev_tokenizer.png"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
-
-
-def _demote_headings(md: str, levels: int = 2) -> str:
-    """Markdown with every heading ``levels`` deeper (a stage's own file inside a section)."""
-    return "\n".join("#" * levels + line if line.startswith("#") else line
-                     for line in md.splitlines())  # fmt: skip
-
-
-def schedule_cell(run_dir: Path) -> str:
-    """The run table's schedule cell of a training step: steps done, or where the guard stopped it.
-
-    Args:
-        run_dir: the step's output folder; a training run holds ``schedule.json``.
-
-    Returns:
-        ``"2700 of 2700 steps"``, ``"**stopped at step 1795 of 2700** (time guard 11.25 min)"``,
-        or ``"–"`` for a step that does not train.
-    """
-    record = read_schedule(run_dir)
-    if not record:
-        return NA
-    done, total = int(record["step"]), int(record["max_steps"])
-    if record.get("stopped_early"):
-        return f"**stopped at step {done} of {total}** (time guard {record['max_minutes']:g} min)"
-    return f"{done} of {total} steps"
-
-
-def _report(cfg: Any, out: Path, results, seconds: float) -> Path:
-    # Imported here: the main job's own process stays light until it writes the report.
-    from renderworld.training.stages.world_model_pictures import BEV_PNG, TRAJ_PNG
-    from renderworld.training.stages.world_model_report import REPORT_BASENAME
-
-    data = Path(str(cfg.data_root)).resolve()
-    sim = load_json(data / "sim_report.json")
-    sections = []
-    steps = "\n".join(
-        ["| step | this run | seconds (when it ran) | schedule |", "|---|---|---|---|"]
-        + [f"| {r.name} | {r.status} | {r.seconds:.0f} | {schedule_cell(out / r.name)} |"
-           for r in results]
+def _world_model_steps(p: _Paths) -> list[Step]:
+    """World models of both settings and the one evaluation that scores them with baselines."""
+    pseudo = p.out / "pseudo_labels"
+    tok = (f"stage.tokenizer_ckpt={p.ckpt('tokenizer')}",)
+    wm_inputs = (*p.code("world"), *p.configs("world_model", "world_model_mini"))
+    steps = _train_and_eval(
+        "world_model",
+        ("train the world model on GT occupancy tokens (3D-Occ setting)", ""),
+        "world_model_mini", (*p.common, *tok), p.out, ("tokenizer",), wm_inputs, p.extra,
+        evaluate=False,
     )  # fmt: skip
-    made = sum(r.seconds for r in results)
-    sections.append(
-        (
-            "Run",
-            f"This run: {seconds:.0f} s; making every output took {made:.0f} s in all.\n\n{steps}",
-        )  # fmt: skip
+    # Camera setting (paper): its own tokenizer, trained on the pseudo labels; the
+    # world_model_eval step scores it in the Camera rows (camera_tokenizer_ckpt).
+    cam_tok = p.ckpt("tokenizer_camera")
+    steps += _train_and_eval(
+        "tokenizer_camera",
+        ("train the AM-VAE tokenizer on Img2Occ pseudo labels (Camera setting)", ""),
+        "tokenizer_mini", (*p.common, f"stage.occ_root={pseudo}"), p.out, ("pseudo_labels",),
+        (*p.code("tokenizer"), *p.configs("tokenizer", "tokenizer_mini")), p.extra,
+        evaluate=False,
+    )  # fmt: skip
+    steps += _train_and_eval(
+        "world_model_camera",
+        ("train the world model on Img2Occ pseudo labels (Camera setting)", ""),
+        "world_model_mini",
+        (*p.common, f"stage.tokenizer_ckpt={cam_tok}", f"stage.occ_root={pseudo}"), p.out,
+        ("tokenizer_camera", "pseudo_labels"), wm_inputs, p.extra, evaluate=False,
+    )  # fmt: skip
+    # One evaluation, one table: both settings, model and baselines.
+    evaluate = (
+        sys.executable, "tools/eval.py", "experiment=world_model_mini", *p.common, *tok,
+        f"ckpt={p.ckpt('world_model')}", f"pseudo_labels={pseudo}",
+        f"camera_ckpt={p.ckpt('world_model_camera')}", f"camera_tokenizer_ckpt={cam_tok}",
+        f"run_dir={p.out / 'world_model_eval'}",
+    )  # fmt: skip
+    steps.append(
+        Step(
+            "world_model_eval",
+            "forecast and plan on mini_val beside the baselines: 3D-Occ and Camera settings",
+            evaluate,
+            p.out / "world_model_eval",
+            depends_on=("world_model", "tokenizer_camera", "world_model_camera", "pseudo_labels"),
+        )
     )
-    if sim:
-        sections.append(
-            (
-                "Data",
-                f"Simulated fixture `{data}`: {sim.get('files', '?')} files, "
-                f"{sim.get('bytes', 0) / 2**20:.0f} MiB, generated in "
-                f"{sim.get('seconds', 0):.0f} s.",
-            )  # fmt: skip
-        )
-    tok = load_json(out / "tokenizer_eval" / "eval_metrics.json")
-    if tok:
-        body = metrics_table(
-            tok,
-            [
-                ("mIoU (classes 0..16, full volume, OccWorld protocol)", "val/miou"),
-                ("IoU occupied vs free (full volume)", "val/iou"),
-                ("mIoU inside the camera mask", "val/cam/miou"),
-                ("IoU inside the camera mask", "val/cam/iou"),
-            ],  # fmt: skip
-        )
-        classes = per_class_table(tok, "val/")
-        body += "\n\nPer-class IoU (%, full volume):\n\n" + classes
-        legend = [f"{NA}: {ABSENT}"] if NA in classes else []
-        if "n/a" in body:
-            legend.append(
-                "n/a: not in this evaluation's metrics, or undefined (0/0: nothing occupied in "
-                "GT or reconstruction in that region)"
-            )
-        body += "".join(f"\n\n{x}" for x in legend)
-        sections.append(("Tokenizer reconstruction (AM-VAE, mini_val, GT occupancy)", body))
-    i2o_table = out / "img2occ_eval" / "occ3d_metrics.md"
-    if i2o_table.is_file():
-        body = _demote_headings(i2o_table.read_text())
-        if NA in body and "absent" not in body:
-            body += f"\n\n{NA}: {ABSENT}"
-        sections.append(("3-D occupancy from cameras (Img2Occ, mini_val)", body))
-    wm_table = out / "world_model_eval" / f"{REPORT_BASENAME}.md"
-    if wm_table.is_file():
-        sections.append(
-            (
-                "Forecasting and planning (mini_val; 3D-Occ and Camera settings)",
-                wm_table.read_text(),
-            )
-        )
-    figures = []
-    runs = ("img2occ", "tokenizer", "tokenizer_camera", "world_model", "world_model_camera")
-    for run in runs:
-        png = plot_training_curves(
-            out / run / "metrics.csv", out / "figures" / f"curves_{run}.png",
-            keys=("train/loss", "val/"),
-        )  # fmt: skip
-        if png:
-            figures.append(f"![{run} training curves](figures/{png.name})")
-    views = out / "img2occ_eval" / "img2occ_views.png"
-    if views.is_file():
-        (out / "figures").mkdir(parents=True, exist_ok=True)
-        (out / "figures" / views.name).write_bytes(views.read_bytes())
-        figures.append(f"![Img2Occ renders vs LiDAR-projected targets](figures/{views.name})")
-    bev = _bev_figure(cfg, out)
-    if bev:
-        figures.append(f"![BEV GT vs reconstruction](figures/{bev.name})")
-    for name, caption in (
-        (BEV_PNG, "BEV occupancy: GT vs Img2Occ pseudo label vs forecasts at +1/2/3 s"),
-        (TRAJ_PNG, "Planned vs GT trajectories over the BEV (3D-Occ model, CV baseline)"),
-    ):
-        png = out / "world_model_eval" / name
-        if png.is_file():
-            (out / "figures").mkdir(parents=True, exist_ok=True)
-            (out / "figures" / name).write_bytes(png.read_bytes())
-            figures.append(f"![{caption}](figures/{name})")
-    if figures:
-        sections.append(("Pictures", "\n\n".join(figures)))
-    return write_report(out, sections)
+    return steps
 
 
 def run_main_job(cfg: Any, repo: Path) -> Path:
@@ -378,7 +235,7 @@ def run_main_job(cfg: Any, repo: Path) -> Path:
     steps = main_job_steps(cfg, repo)
     print(f"RenderWorld main job: {len(steps)} steps, outputs in {out}")
     results = run_steps(steps, out / "logs", cwd=repo, force=list(cfg.force))
-    report = _report(cfg, out, results, time.perf_counter() - t0)
+    report = main_job_report(cfg, out, results, time.perf_counter() - t0)
     ran = sum(r.status == "ran" for r in results)
     print(f"done in {time.perf_counter() - t0:.0f} s ({ran} steps ran, {len(results) - ran} "
           f"up to date); report: {report}")  # fmt: skip

@@ -9,7 +9,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from renderworld.constants import FREE_ID, GRIDS
-from renderworld.pipeline.main_job import _report
+from renderworld.pipeline.job_report import main_job_report as _report
 from renderworld.pipeline.runner import StepResult
 from renderworld.training.figures import bev_forecast_figure
 from renderworld.training.schedule import write_schedule
