@@ -34,8 +34,6 @@ _WEIGHTS = (
     "semantic_weight",
     "depth_weight",
     "depth_l1_weight",
-    "ray_weight",
-    "carve_weight",
     "backproject_weight",
     "adjacent_weight",
     "lift_depth_weight",
@@ -85,19 +83,8 @@ class Img2OccConfig:
             Pearson correlation is blind to an affine change of depth, so it cannot tell a
             veil of half-opaque "air" Gaussians in front of a surface from the surface itself;
             this term can (see the overfitting test).
-        ray_weight: weight of the ray-distribution loss, mean over LiDAR pixels of
-            ``sum_i w_i (z_i - d)^2 / d^2``: the blending weights w_i of the Gaussians along
-            the pixel's ray must sit at the LiDAR depth d (z_i: a Gaussian's camera z). Not
-            in the paper (0 = paper): expected-depth losses cannot see a semi-transparent
-            veil in front of a surface balanced by mass behind it, and this term removes
-            it (DS-NeRF's ray-distribution idea on the 2-D depth labels). Renders each
-            camera separately (two more feature channels).
-        carve_weight: weight of free-space carving, ``-log(1 - opacity)`` of voxels that
-            the keyframe cameras' LiDAR depth maps see as empty (centre more than
-            ``carve_margin`` in front of the pixel's LiDAR depth, and no camera sees the
-            voxel at its surface; ``renderworld.img2occ.carving``). Not in the paper (0 =
-            paper): rendered losses let half-transparent Gaussians fill seen free space.
-        carve_margin: metres (> 0), see ``carve_weight``.
+        carve_margin: metres (> 0): a voxel whose centre lies more than this in front of a
+            pixel's LiDAR depth is seen through, hence a free target of ``backproject_weight``.
         backproject_weight: weight of the voxel loss (opacity BCE + class CE) against the
             targets back-projected from the 2-D label maps (``renderworld.img2occ.
             backproject``): voxels holding labelled pixels' points are occupied with their
@@ -166,8 +153,6 @@ class Img2OccConfig:
     semantic_weight: float = 1.0
     depth_weight: float = 1.0
     depth_l1_weight: float = 0.0
-    ray_weight: float = 0.0
-    carve_weight: float = 0.0
     carve_margin: float = 1.6
     backproject_weight: float = 0.0
     backproject_adjacent: bool = False

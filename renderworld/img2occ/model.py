@@ -19,7 +19,6 @@ from torch import nn
 from renderworld.constants import NUM_SEMANTIC_CLASSES
 from renderworld.geometry import VoxelGrid, scale_intrinsics
 from renderworld.img2occ.backproject import backprojected_loss
-from renderworld.img2occ.carving import free_space_loss, free_space_targets
 from renderworld.img2occ.config import Img2OccConfig
 from renderworld.img2occ.depth_lift import (
     DepthSemanticHead,
@@ -35,7 +34,6 @@ from renderworld.img2occ.lifting import lift_features
 from renderworld.img2occ.losses import (
     balanced_class_weights,
     pearson_depth_loss,
-    ray_distribution_loss,
     relative_depth_l1_loss,
     semantic_nll_loss,
 )
@@ -107,11 +105,8 @@ class Img2Occ(nn.Module):
         """Images → ``(gaussians, count, image_logits, fine_logits)``: the Gaussians,
         per-voxel camera visibility counts [B, V], the per-pixel depth/class logits
         [B, C, D + K, h, w] of depth-aware lifting and the fine class logits
-        [B, C, K, h_f, w_f] of ``fine_semantics`` (each None when off).
-
-        Mixed precision (:mod:`renderworld.precision`): the encoder and the heads run under the
-        caller's autocast; their outputs are cast to float32, and the lifting's projections,
-        the depth CDFs and the Gaussians' activations run in float32 with autocast off."""
+        [B, C, K, h_f, w_f] of ``fine_semantics`` (each None when off). The networks run under
+        the caller's autocast, the rest in float32 (:mod:`renderworld.precision`)."""
         self._check_batch(batch, _KEY_INPUTS)
         images = batch["images"]
         h_in, w_in = self.cfg.input_size
@@ -190,12 +185,12 @@ class Img2Occ(nn.Module):
 
     def _render(self, g: AnchorGaussians, cam_to_ego, intrinsics) -> RenderedViews:
         h, w = self.cfg.render_size
-        return render_views(
-            g, cam_to_ego, intrinsics, width=w, height=h,
-            render_fn=self.render_fn, prune_opacity=self.cfg.prune_opacity,
-            near=self.cfg.near, far=self.cfg.far, backend=self.cfg.render_backend,
-            depth_moments=self.cfg.ray_weight > 0,
-        )  # fmt: skip
+        with autocast_off():  # poses and rendering in float32 (see renderworld.splat)
+            return render_views(
+                g, cam_to_ego, intrinsics, width=w, height=h,
+                render_fn=self.render_fn, prune_opacity=self.cfg.prune_opacity,
+                near=self.cfg.near, far=self.cfg.far, backend=self.cfg.render_backend,
+            )  # fmt: skip
 
     @float32_boundary
     def augment(self, batch: dict) -> dict:
@@ -228,16 +223,10 @@ class Img2Occ(nn.Module):
             render = not (self.training and self.cfg.supervision == "3d")
         if not render:
             if self.cfg.mirror_readout and not self.training:
-                # Encoded under the same autocast as the scene itself.
-                mirrored = self.encode(float32_boundary(mirror_batch)(batch))[0]
-                with autocast_off():
-                    average_with_mirror(out.gaussians, mirrored, self.cfg.grid.shape)
+                mirrored = self.encode(mirror_batch(batch))[0]
+                average_with_mirror(out.gaussians, mirrored, self.cfg.grid.shape)
             return out
-        with autocast_off():  # rendering in float32 (see encode and renderworld.splat)
-            return self._render_output(batch, out, b)
-
-    def _render_output(self, batch: dict, out: Img2OccOutput, b: int) -> Img2OccOutput:
-        g, device = out.gaussians, out.gaussians.opacities.device
+        g, device = out.gaussians, count.device
         self._check_batch(batch, ("render_intrinsics",))
         c = batch["cam_to_ego"].shape[1]
         idx = self._pick(b, c, self.cfg.views_per_step, device)
@@ -277,19 +266,13 @@ class Img2Occ(nn.Module):
         rendered, target = views.depth.flatten(0, 1), depth.flatten(0, 1).to(views.depth)
         dep = pearson_depth_loss(rendered, target)
         l1 = relative_depth_l1_loss(rendered, target)
-        ray = rendered.new_zeros(())
-        if views.moments is not None:
-            ray = ray_distribution_loss(
-                views.moments.flatten(0, 1), views.alpha.flatten(0, 1), target
-            )
-        # One weighted sum per view set: semantics, Pearson depth, depth L1 and ray terms.
+        # One weighted sum per view set: semantics, Pearson depth and depth L1 terms.
         total = (
             self.cfg.semantic_weight * sem
             + self.cfg.depth_weight * dep
             + self.cfg.depth_l1_weight * l1
-            + self.cfg.ray_weight * ray
         )
-        return total, sem, dep, l1, ray
+        return total, sem, dep, l1
 
     @float32_boundary
     def loss(self, batch: dict, output: Img2OccOutput) -> tuple[torch.Tensor, dict[str, float]]:
@@ -362,7 +345,7 @@ class Img2Occ(nn.Module):
             raise ValueError("output: has no rendered views; call forward(batch, render=True)")
         cfg = self.cfg
         idx = output.view_index
-        total, sem, dep, l1, ray = self._view_losses(
+        total, sem, dep, l1 = self._view_losses(
             output.views,
             _gather_views(batch["depth"], idx),
             _gather_views(batch["semantics"], idx),
@@ -373,17 +356,7 @@ class Img2Occ(nn.Module):
             "loss_depth": dep.detach(),
             "loss_depth_l1": l1.detach(),
         }
-        if output.views.moments is not None:
-            logs["loss_ray"] = ray.detach()
         g = output.gaussians
-        if cfg.carve_weight > 0:
-            free = free_space_targets(
-                self.centres, batch["cam_to_ego"], batch["render_intrinsics"],
-                batch["depth"], cfg.carve_margin, near=cfg.near,
-            )  # fmt: skip
-            carve = free_space_loss(g.opacities, free, cfg.prob_eps)
-            total = total + cfg.carve_weight * carve
-            logs.update(loss_carve=carve.detach(), carved=free.float().mean())
         if cfg.backproject_weight > 0:
             bce, ce, _ = backprojected_loss(
                 g.opacities, g.logits, self.centres, self.grid, batch, cfg.carve_margin,
@@ -393,7 +366,7 @@ class Img2Occ(nn.Module):
             logs.update(loss_bp_occ=bce.detach(), loss_bp_sem=ce.detach())
         if output.adj_views is not None:
             self._check_batch(batch, ("adj_depth", "adj_semantics"))
-            a_total, a_sem, a_dep, _, _ = self._view_losses(
+            a_total, a_sem, a_dep, _ = self._view_losses(
                 output.adj_views,
                 _gather_views(batch["adj_depth"], output.adj_index),
                 _gather_views(batch["adj_semantics"], output.adj_index),

@@ -2,7 +2,7 @@ import sys
 
 import pytest
 
-from renderworld.training.pipeline import PipelineError, Step, run_steps
+from renderworld.pipeline.runner import PipelineError, Step, run_steps
 
 
 def _steps(tmp_path, fail_second=False):
@@ -78,7 +78,7 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
 
     from omegaconf import OmegaConf
 
-    from renderworld.training.pipeline_main import main_job_steps
+    from renderworld.pipeline.main_job import main_job_steps
 
     repo = Path(__file__).resolve().parents[2]
     cfg = OmegaConf.load(repo / "configs" / "pipeline.yaml")
@@ -128,3 +128,40 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
     assert cargs["stage.occ_root"] == str(out / "pseudo_labels")
     gt = dict(a.split("=", 1) for a in steps[names.index("world_model")].command[2:])
     assert gt["stage.tokenizer_ckpt"] == str(out / "tokenizer" / "checkpoints" / "best.pt")
+
+
+def test_real_data_main_job_runs_the_paper_experiments_without_simulating(tmp_path):
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from renderworld.pipeline.main_job import main_job_steps
+
+    repo = Path(__file__).resolve().parents[2]
+    cfg = OmegaConf.load(repo / "configs" / "pipeline.yaml")
+    cfg.out, cfg.data_root = str(tmp_path / "out"), str(tmp_path / "nuscenes")
+    cfg.preset, cfg.version, cfg.experiments = None, "v1.0-trainval", "paper"
+    steps = main_job_steps(cfg, repo)
+    names = [s.name for s in steps]
+    assert "fixtures" not in names and names[0] == "infos" and steps[0].depends_on == ()
+    assert "version=v1.0-trainval" in steps[0].command
+    for s in steps[1:]:
+        assert set(s.depends_on) <= set(names[: names.index(s.name)]), s.name
+    args = {s.name: dict(a.split("=", 1) for a in s.command[2:]) for s in steps[1:]}
+    want = {
+        "tokenizer": "paper_tokenizer",
+        "img2occ": "paper_img2occ",
+        "world_model": "paper_world_model",
+        "tokenizer_camera": "paper_tokenizer",
+        "world_model_camera": "paper_camera",
+        "world_model_eval": "paper_world_model",
+    }
+    for name, experiment in want.items():
+        assert args[name]["experiment"] == experiment, name
+        assert args[name]["dataset.version"] == "v1.0-trainval", name
+    # Pseudo labels exported on the GPU Img2Occ trained on, from the real data's version.
+    assert args["pseudo_labels"]["device"] == "cuda"
+    assert args["pseudo_labels"]["version"] == "v1.0-trainval"
+    cfg.experiments = "huge"
+    with pytest.raises(ValueError, match=r"experiments: expected one of \['mini', 'paper'\]"):
+        main_job_steps(cfg, repo)
