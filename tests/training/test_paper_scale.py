@@ -5,7 +5,7 @@ batch 1, no workers) and the readout search's sample count: Img2Occ at the Occ3D
 Gaussians, 256x704 inputs, 225x400 renders) trains, evaluates and exports pseudo labels; the
 paper tokenizer (latent 50x50x128, 512 codes) and world model train on the GT, the Camera
 setting's world model on the pseudo labels, and the world model plans through a planner bundle.
-``benchmarks/bench_scale.py`` times the same steps. About 25-30 minutes on a 2-core CPU.
+``benchmarks/bench_scale.py`` times the same steps. 39 minutes on the shared 2-core CPU (load ~8).
 """
 
 from __future__ import annotations
