@@ -178,6 +178,12 @@ class Img2OccConfig:
     semantic_3d_weight: float = 1.0
 
     def __post_init__(self) -> None:
+        self._check_network()
+        self._check_gaussians_and_rendering()
+        self._check_losses_and_options()
+
+    def _check_network(self) -> None:
+        """Grid, image sizes, encoder and head."""
         if isinstance(self.grid, str):
             self.grid = get_grid(self.grid)
         if not isinstance(self.grid, GridSpec):
@@ -210,6 +216,9 @@ class Img2OccConfig:
             raise ValueError(f"head_blocks: expected an int >= 0, got {self.head_blocks!r}")
         if self.timm_weights is not None and self.timm_backbone is None:
             raise ValueError("timm_weights: given without timm_backbone (name the timm model)")
+
+    def _check_gaussians_and_rendering(self) -> None:
+        """Gaussian parameters, pruning, views per step, clipping planes."""
         lo_hi = tuple(float(v) for v in self.scale_range)
         if len(lo_hi) != 2 or not (0 < lo_hi[0] < lo_hi[1]):
             raise ValueError(f"scale_range: expected 0 < s_min < s_max, got {self.scale_range!r}")
@@ -226,16 +235,19 @@ class Img2OccConfig:
             v = getattr(self, name)
             if v is not None:
                 _positive_int(name, v)
+        if not (0 < self.near < self.far):
+            raise ValueError(f"near/far: expected 0 < near < far, got {self.near}, {self.far}")
+        if not (self.lift_near > 0):
+            raise ValueError(f"lift_near: expected > 0 metres, got {self.lift_near!r}")
+
+    def _check_losses_and_options(self) -> None:
+        """Loss weights, depth-aware lifting, class balancing, back-projection, mirroring."""
         for name in _WEIGHTS:
             v = getattr(self, name)
             if not (math.isfinite(float(v)) and float(v) >= 0):
                 raise ValueError(f"{name}: expected a finite weight >= 0, got {v!r}")
         if not (math.isfinite(float(self.carve_margin)) and float(self.carve_margin) > 0):
             raise ValueError(f"carve_margin: expected > 0 metres, got {self.carve_margin!r}")
-        if not (0 < self.near < self.far):
-            raise ValueError(f"near/far: expected 0 < near < far, got {self.near}, {self.far}")
-        if not (self.lift_near > 0):
-            raise ValueError(f"lift_near: expected > 0 metres, got {self.lift_near!r}")
         if isinstance(self.depth_bins, bool) or not isinstance(self.depth_bins, int):
             raise ValueError(f"depth_bins: expected an int >= 0, got {self.depth_bins!r}")
         if self.depth_bins < 0 or self.depth_bins == 1:
