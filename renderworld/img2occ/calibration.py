@@ -3,7 +3,7 @@
 The readout gives a voxel the class ``argmax(logits + offsets)`` and occupies it when its
 opacity exceeds that class's threshold. The per-class thresholds alone cannot undo a class
 that wins the argmax too often (rare classes trained with class-balanced losses claim road and
-free voxels: with session 5's default model, 256 driveable voxels of mini_val read as
+free voxels: with the img2occ_mini model of d869d89, 256 driveable voxels of mini_val read as
 barrier against 98 true barrier voxels), so :class:`ReadoutCalibration` also chooses one
 additive logit offset per class, on the same GT-labelled training samples and the same
 criterion (Occ3D mIoU over the camera mask). Coordinate ascent: each class's offset in turn
