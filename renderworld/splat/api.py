@@ -146,24 +146,8 @@ def rasterize(
             to_float32(t) for t in (means, quats, scales, opacities, features, viewmats, Ks)
         )
     _validate(means, quats, scales, opacities, features, viewmats, Ks, width, height, near, far)
-    if backend not in BACKENDS + ("auto",):
-        raise ValueError(f"backend: expected one of {('auto',) + BACKENDS}, got {backend!r}")
-    if backend == "auto":
-        names = available_backends(means.device)
-        if "gsplat" in names:
-            backend = "gsplat"
-        elif "cpp" in names:
-            backend = "cpp"
-        else:
-            backend = "torch"
+    backend = _choose_backend(backend, means.device)
     args = (means, quats, scales, opacities, features, viewmats, Ks, width, height, near, far)
-    if backend == "cpp" and means.device.type != "cpu":
-        raise ValueError(f"backend: 'cpp' needs CPU tensors, got device {means.device}")
-    if backend == "gsplat":
-        if means.device.type != "cuda":
-            raise ValueError(f"backend: 'gsplat' needs CUDA tensors, got device {means.device}")
-        if not _gsplat_importable():
-            raise ValueError("backend: 'gsplat' requested but gsplat is not installed")
     # Autocast off: projection, 2-D covariance inverses and compositing stay in the inputs'
     # dtype (float32 under autocast) instead of bf16 matrix products.
     with autocast_off():
@@ -177,3 +161,24 @@ def rasterize(
             feats, depth_sum, alpha = rasterize_cpp(*args)
         depth = depth_sum / alpha.clamp_min(DEPTH_EPS)
     return RenderResult(feats, depth, alpha)
+
+
+def _choose_backend(backend: str, device: torch.device) -> str:
+    """The backend ``rasterize`` runs for ``backend`` ("auto" resolved) on ``device``.
+
+    Raises:
+        ValueError: an unknown backend, or one that cannot run on ``device`` / is not installed.
+    """
+    if backend not in BACKENDS + ("auto",):
+        raise ValueError(f"backend: expected one of {('auto',) + BACKENDS}, got {backend!r}")
+    if backend == "auto":
+        names = available_backends(device)
+        return "gsplat" if "gsplat" in names else "cpp" if "cpp" in names else "torch"
+    if backend == "cpp" and device.type != "cpu":
+        raise ValueError(f"backend: 'cpp' needs CPU tensors, got device {device}")
+    if backend == "gsplat":
+        if device.type != "cuda":
+            raise ValueError(f"backend: 'gsplat' needs CUDA tensors, got device {device}")
+        if not _gsplat_importable():
+            raise ValueError("backend: 'gsplat' requested but gsplat is not installed")
+    return backend

@@ -152,8 +152,16 @@ def export_pseudo_labels(
         for p in paths:
             sem = load_occ3d_labels(p, expected_shape=grid.shape).semantics
             hist += np.bincount(sem.reshape(-1), minlength=len(OCC3D_CLASSES))
+    summary = _summary(model, meta, out_dir, counts, hist)
+    _write_info(summary, ckpt, data_root, folder, grid)
+    return summary
+
+
+def _summary(model, meta: dict, out_dir: Path, counts: dict, hist: np.ndarray) -> ExportSummary:
+    """What an export wrote: files per split, the readout it used, class fractions."""
+    grid = model.cfg.grid
     fractions = {c: float(n) / max(int(hist.sum()), 1) for c, n in zip(OCC3D_CLASSES, hist)}
-    summary = ExportSummary(
+    return ExportSummary(
         out_dir=out_dir,
         files_per_split=counts,
         step=int(meta["step"]),
@@ -171,6 +179,10 @@ def export_pseudo_labels(
             else None
         ),
     )
+
+
+def _write_info(summary: ExportSummary, ckpt, data_root, folder: Path, grid) -> None:
+    """``<out>/export_info.json``: the summary plus where the labels came from."""
     info = {
         "checkpoint": str(Path(ckpt).resolve()),
         "data_root": str(Path(data_root).resolve()),
@@ -180,9 +192,8 @@ def export_pseudo_labels(
         "class_thresholds": summary.class_thresholds,
         "class_offsets": summary.class_offsets,
         "grid": {"name": grid.name, "shape": list(grid.shape)},
-        "files_per_split": counts,
-        "class_fractions": fractions,
+        "files_per_split": summary.files_per_split,
+        "class_fractions": summary.class_fractions,
     }
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "export_info.json").write_text(json.dumps(info, indent=2) + "\n")
-    return summary
+    summary.out_dir.mkdir(parents=True, exist_ok=True)
+    (summary.out_dir / "export_info.json").write_text(json.dumps(info, indent=2) + "\n")
