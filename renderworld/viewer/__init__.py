@@ -1,0 +1,36 @@
+"""3-D scene recordings for the Rerun viewer (the optional extra ``renderworld[viz]``).
+
+``write_scene_recording(data_root, "scene.rrd", scene=..., img2occ=..., tokenizer=...,
+planner=...)`` writes one scene: the six cameras (frusta, calibrated poses, images), LiDAR
+points coloured by class, Occ3D GT occupancy, agent and ego boxes, and, when their models are
+given, Img2Occ's Gaussians and read-out occupancy, the tokenizer's reconstruction, the world
+model's forecasts and the planned vs GT trajectories, on ``frame`` / ``time`` timelines.
+Open the file with ``rerun scene.rrd`` or ``rerun --web-viewer scene.rrd``.
+
+Importing this package does not import Rerun (only writing a recording does); the rest of
+RenderWorld never imports it.
+"""
+
+from renderworld.viewer._rerun import INSTALL_HINT, rerun_available
+from renderworld.viewer.recording import (
+    DATA_LAYERS,
+    LAYERS,
+    MODEL_LAYERS,
+    RecordingSummary,
+    write_scene_recording,
+)
+from renderworld.viewer.voxels import VoxelBoxes, gaussian_arrays, grid_for_shape, occupancy_boxes
+
+__all__ = [
+    "DATA_LAYERS",
+    "INSTALL_HINT",
+    "LAYERS",
+    "MODEL_LAYERS",
+    "RecordingSummary",
+    "VoxelBoxes",
+    "gaussian_arrays",
+    "grid_for_shape",
+    "occupancy_boxes",
+    "rerun_available",
+    "write_scene_recording",
+]
