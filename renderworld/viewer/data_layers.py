@@ -104,7 +104,12 @@ def log_lidar(rec, rr, reader, frames: SceneFrames, i: int, point_size: float = 
     rec.log("world/ego/lidar", transform(rr, reader.sensor_to_ego(sd)))
     rec.log(
         "world/ego/lidar",
-        rr.Points3D(pts[:, :3], class_ids=classes, radii=rr.Radius.ui_points(point_size)),
+        rr.Points3D(
+            pts[:, :3],
+            class_ids=classes,
+            radii=rr.Radius.ui_points(point_size),
+            show_labels=False,
+        ),
     )
     return len(pts)
 
@@ -120,6 +125,7 @@ def log_voxels(rec, rr, entity: str, occupancy: np.ndarray, grid=None, mask=None
             half_sizes=boxes.half_size[None],
             class_ids=boxes.classes,
             fill_mode=rr.components.FillMode.Solid,
+            show_labels=False,
         ),
     )
     return len(boxes.classes)
@@ -157,6 +163,7 @@ def log_agents(rec, rr, reader, frames: SceneFrames, i: int) -> int:
             half_sizes=half.astype(np.float32),
             quaternions=quats,
             class_ids=boxes["occ3d_class"].to_numpy().astype(np.uint16),
+            show_labels=False,
         ),
     )
     return len(boxes)

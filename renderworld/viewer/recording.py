@@ -92,6 +92,7 @@ def write_scene_recording(
     forecast_steps: int | None = None,
     occ_root: str | os.PathLike | None = None,
     device: str = "cpu",
+    reasons: dict[str, str] | None = None,
     reader=None,
     log: Callable[[str], None] | None = print,
 ) -> RecordingSummary:
@@ -119,6 +120,8 @@ def write_scene_recording(
         occ_root: exported labels laid out like ``gts/`` as the tokenizer's and planner's input
             (the Camera setting); default the Occ3D GT.
         device: where the models run.
+        reasons: {layer: why its model is None} (e.g. a checkpoint file that does not exist),
+            printed instead of the generic skip line.
         reader: an open :class:`~renderworld.data.NuScenesReader` of ``data_root`` (optional).
         log: receives the skip lines and progress (None: silent).
 
@@ -155,7 +158,7 @@ def write_scene_recording(
 
     models = _model_layers(
         wanted, skip, frames.scene, data_root, version, infos_dir,
-        dict(img2occ=img2occ, tokenizer=tokenizer, forecast=planner),
+        dict(img2occ=img2occ, tokenizer=tokenizer, forecast=planner), reasons or {},
         dict(gaussians=gaussians, min_opacity=min_opacity, forecast_steps=forecast_steps,
              occ_root=occ_root, device=device),
     )  # fmt: skip
@@ -212,7 +215,7 @@ def write_scene_recording(
     )
 
 
-def _model_layers(wanted, skip, scene, data_root, version, infos_dir, models, opts) -> dict:
+def _model_layers(wanted, skip, scene, data_root, version, infos_dir, models, reasons, opts):
     """The model layers to write, built once per scene; the others reported through ``skip``."""
     todo = [m for m in MODEL_LAYERS if m in wanted]
     if not todo:
@@ -223,7 +226,7 @@ def _model_layers(wanted, skip, scene, data_root, version, infos_dir, models, op
         "forecast": "no planner given (world_model_ckpt with tokenizer_ckpt, or planner_bundle)",
     }
     for m in [m for m in todo if models[m] is None]:
-        skip(m, names[m])
+        skip(m, reasons.get(m, names[m]))
     todo = [m for m in todo if models[m] is not None]
     if not todo:
         return {}

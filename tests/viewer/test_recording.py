@@ -157,3 +157,26 @@ def test_bad_arguments_name_the_argument(converted, tmp_path):
         write_scene_recording(root, tmp_path / "a.rrd", max_frames=0)
     assert not list(tmp_path.iterdir()), "nothing is written on a bad argument"
     assert set(LAYERS) >= {"cameras", "lidar", "gt_occupancy", "img2occ", "forecast"}
+
+
+def test_tool_writes_the_recording_and_says_how_to_open_it(converted, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root, infos = converted
+    out = tmp_path / "tool.rrd"
+    run = subprocess.run(
+        [sys.executable, "tools/view.py", f"data_root={root}", f"infos_dir={infos}",
+         f"scene={SCENE}", f"out={out}", "max_frames=1", "layers=[ego,lidar,img2occ]",
+         f"img2occ_ckpt={tmp_path / 'absent.pt'}"],
+        cwd=Path(__file__).resolve().parents[2], capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-2000:]
+    skips = [x for x in run.stdout.splitlines() if "skipping" in x]
+    assert skips == [f"viewer: skipping layer 'img2occ': img2occ_ckpt "
+                     f"{str(tmp_path / 'absent.pt')!r} does not exist"]  # fmt: skip
+    assert f"rerun {out}" in run.stdout
+    counts, timelines = read_back(out)
+    assert timelines["frame"] == [0]
+    assert {e for e, _ in counts} == {"/world/ego", "/world/ego/box", "/world/ego/lidar"}
