@@ -44,6 +44,7 @@ def main(cfg: DictConfig) -> dict:
         start=int(cfg.start),
         max_frames=None if cfg.max_frames is None else int(cfg.max_frames),
         occ_mask=str(cfg.occ_mask),
+        voxels=str(cfg.voxels),
         gaussians=str(cfg.gaussians),
         min_opacity=float(cfg.min_opacity),
         forecast_steps=None if cfg.forecast_steps is None else int(cfg.forecast_steps),

@@ -19,7 +19,13 @@ from renderworld.viewer.recording import (
     RecordingSummary,
     write_scene_recording,
 )
-from renderworld.viewer.voxels import VoxelBoxes, gaussian_arrays, grid_for_shape, occupancy_boxes
+from renderworld.viewer.voxels import (
+    VoxelBoxes,
+    gaussian_arrays,
+    grid_for_shape,
+    hidden_voxels,
+    occupancy_boxes,
+)
 
 __all__ = [
     "DATA_LAYERS",
@@ -30,6 +36,7 @@ __all__ = [
     "VoxelBoxes",
     "gaussian_arrays",
     "grid_for_shape",
+    "hidden_voxels",
     "occupancy_boxes",
     "rerun_available",
     "write_scene_recording",

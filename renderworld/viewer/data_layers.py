@@ -114,10 +114,13 @@ def log_lidar(rec, rr, reader, frames: SceneFrames, i: int, point_size: float = 
     return len(pts)
 
 
-def log_voxels(rec, rr, entity: str, occupancy: np.ndarray, grid=None, mask=None) -> int:
+def log_voxels(
+    rec, rr, entity: str, occupancy: np.ndarray, grid=None, mask=None, surface_only=True
+) -> int:
     """An occupancy volume [X, Y, Z] (ego frame) as solid boxes for its occupied voxels at
-    ``entity``. Returns the number of boxes."""
-    boxes = occupancy_boxes(occupancy, grid, mask)
+    ``entity`` (only those a viewer can see unless ``surface_only`` is False; see
+    :func:`~renderworld.viewer.voxels.occupancy_boxes`). Returns the number of boxes."""
+    boxes = occupancy_boxes(occupancy, grid, mask, surface_only=surface_only)
     rec.log(
         entity,
         rr.Boxes3D(
@@ -131,7 +134,9 @@ def log_voxels(rec, rr, entity: str, occupancy: np.ndarray, grid=None, mask=None
     return len(boxes.classes)
 
 
-def log_gt_occupancy(rec, rr, reader, frames: SceneFrames, i: int, mask: str = "none") -> int:
+def log_gt_occupancy(
+    rec, rr, reader, frames: SceneFrames, i: int, mask: str = "none", surface_only: bool = True
+) -> int:
     """Occ3D ground truth at ``world/ego/occupancy/gt`` (occupied voxels; ``mask`` "camera"
     or "lidar" keeps only voxels observed by that sensor). Returns the number of boxes, or
     -1 when the sample has no Occ3D file."""
@@ -141,7 +146,9 @@ def log_gt_occupancy(rec, rr, reader, frames: SceneFrames, i: int, mask: str = "
     if labels is None:
         return -1
     m = None if mask == "none" else getattr(labels, f"mask_{mask}")
-    return log_voxels(rec, rr, "world/ego/occupancy/gt", labels.semantics, mask=m)
+    return log_voxels(
+        rec, rr, "world/ego/occupancy/gt", labels.semantics, mask=m, surface_only=surface_only
+    )
 
 
 def log_agents(rec, rr, reader, frames: SceneFrames, i: int) -> int:

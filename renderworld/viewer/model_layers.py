@@ -79,14 +79,25 @@ class Img2OccLayer:
         gaussians: one of :data:`GAUSSIAN_MODES`.
         min_opacity: Gaussians fainter than this are not drawn (every voxel has one).
         device: where the model runs.
+        surface_only: draw only the read-out voxels a viewer can see (``occupancy_boxes``).
     """
 
-    def __init__(self, model, infos, data_root, gaussians="splats", min_opacity=0.05, device="cpu"):
+    def __init__(
+        self,
+        model,
+        infos,
+        data_root,
+        gaussians="splats",
+        min_opacity=0.05,
+        device="cpu",
+        surface_only=True,
+    ):
         from renderworld.data import Img2OccDataset
 
         if gaussians not in GAUSSIAN_MODES:
             raise ValueError(f"gaussians: expected one of {GAUSSIAN_MODES}, got {gaussians!r}")
         self.model, self.mode, self.min_opacity = model, gaussians, float(min_opacity)
+        self.surface_only = surface_only
         self.device = torch.device(device)
         cfg = model.cfg
         self.data = Img2OccDataset(
@@ -128,7 +139,10 @@ class Img2OccLayer:
                 entity,
                 rr.Points3D(arr["centres"], colors=arr["rgba"], radii=arr["scales"].mean(axis=1)),
             )
-        n_occ = log_voxels(rec, rr, "world/ego/img2occ/occupancy", occ, grid=self.model.cfg.grid)
+        n_occ = log_voxels(
+            rec, rr, "world/ego/img2occ/occupancy", occ, self.model.cfg.grid,
+            surface_only=self.surface_only,
+        )  # fmt: skip
         return {entity: len(arr["centres"]), "world/ego/img2occ/occupancy": n_occ}
 
 
@@ -136,10 +150,11 @@ class TokenizerLayer:
     """The tokenizer's reconstruction ``decode(encode(occ))`` of the GT occupancy (or of the
     labels under ``occ_root``) on the tokenizer's grid, per keyframe."""
 
-    def __init__(self, tokenizer, infos, data_root, occ_root=None, device="cpu"):
+    def __init__(self, tokenizer, infos, data_root, occ_root=None, device="cpu", surface_only=True):
         from renderworld.data import OccSequenceDataset
 
         self.tokenizer, self.device = tokenizer, torch.device(device)
+        self.surface_only = surface_only
         self.grid = grid_for_shape(tokenizer.cfg.grid_shape)
         self.data = OccSequenceDataset(
             infos, data_root, history=1, future=0, grid=self.grid, occ_root=occ_root
@@ -154,8 +169,10 @@ class TokenizerLayer:
         occ = self.data[w]["occ"].to(self.device)
         with torch.inference_mode():
             rec_occ = self.tokenizer.decode(self.tokenizer.encode(occ))[0].cpu().numpy()
+        rec_occ = rec_occ.astype(np.uint8)
         entity = "world/ego/tokenizer/reconstruction"
-        return {entity: log_voxels(rec, rr, entity, rec_occ.astype(np.uint8), grid=self.grid)}
+        n = log_voxels(rec, rr, entity, rec_occ, self.grid, None, self.surface_only)
+        return {entity: n}
 
 
 def forecast_entity(step: int) -> str:
@@ -172,10 +189,12 @@ class ForecastLayer:
     its forecasts of t+1..t+S and its trajectory are logged at t.
     """
 
-    def __init__(self, planner, infos, data_root, occ_root=None, steps: int | None = None):
+    def __init__(
+        self, planner, infos, data_root, occ_root=None, steps: int | None = None, surface_only=True
+    ):
         from renderworld.data import OccSequenceDataset
 
-        self.planner = planner
+        self.planner, self.surface_only = planner, surface_only
         h = planner.config.history_frames
         s = planner.config.future_frames
         if steps is not None and (isinstance(steps, bool) or not 0 <= int(steps) <= s):
@@ -224,7 +243,7 @@ class ForecastLayer:
             entity = forecast_entity(k + 1)
             rec.log(entity, transform(rr, frames.ego_to_world[i] @ ego_from_pred))
             counts[entity] = log_voxels(
-                rec, rr, entity, result.occupancy_forecast[k], grid=self.grid
+                rec, rr, entity, result.occupancy_forecast[k], self.grid, None, self.surface_only
             )
         return counts
 

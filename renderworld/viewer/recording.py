@@ -87,6 +87,7 @@ def write_scene_recording(
     start: int = 0,
     max_frames: int | None = None,
     occ_mask: str = "none",
+    voxels: str = "surface",
     gaussians: str = "splats",
     min_opacity: float = 0.05,
     forecast_steps: int | None = None,
@@ -114,6 +115,9 @@ def write_scene_recording(
         layers: names from :data:`LAYERS` to write.
         start: first keyframe; max_frames: how many (None: to the scene's end).
         occ_mask: GT occupancy shown: ``"none"`` (all occupied voxels), ``"camera"``, ``"lidar"``.
+        voxels: ``"surface"``: every voxel layer leaves out the occupied voxels whose six
+            neighbours are occupied (no viewpoint shows them; about half of a full Occ3D frame);
+            ``"all"``: every occupied voxel.
         gaussians: how Img2Occ's Gaussians are drawn, one of :data:`GAUSSIAN_MODES`.
         min_opacity: Gaussians below this opacity are not drawn.
         forecast_steps: forecasts drawn per keyframe (None: all of the planner's, 6 = 3 s).
@@ -142,6 +146,9 @@ def write_scene_recording(
     wanted = _check_layers(layers)
     if gaussians not in GAUSSIAN_MODES:
         raise ValueError(f"gaussians: expected one of {GAUSSIAN_MODES}, got {gaussians!r}")
+    if voxels not in ("surface", "all"):
+        raise ValueError(f"voxels: expected 'surface' or 'all', got {voxels!r}")
+    surface = voxels == "surface"
     if occ_mask not in ("none", "camera", "lidar"):
         raise ValueError(f"occ_mask: expected 'none', 'camera' or 'lidar', got {occ_mask!r}")
     out = Path(out)
@@ -160,7 +167,7 @@ def write_scene_recording(
         wanted, skip, frames.scene, data_root, version, infos_dir,
         dict(img2occ=img2occ, tokenizer=tokenizer, forecast=planner), reasons or {},
         dict(gaussians=gaussians, min_opacity=min_opacity, forecast_steps=forecast_steps,
-             occ_root=occ_root, device=device),
+             occ_root=occ_root, device=device, surface_only=surface),
     )  # fmt: skip
     if "lidar" in wanted and not reader.has_lidarseg:
         say("viewer: no lidarseg in this dataset: LiDAR points are drawn as class 'others'")
@@ -178,7 +185,9 @@ def write_scene_recording(
             "cameras": lambda i: {"world/ego/cameras": dl.log_cameras(rec, rr, reader, frames, i)},
             "lidar": lambda i: {"world/ego/lidar": dl.log_lidar(rec, rr, reader, frames, i)},
             "gt_occupancy": lambda i: {
-                "world/ego/occupancy/gt": dl.log_gt_occupancy(rec, rr, reader, frames, i, occ_mask)
+                "world/ego/occupancy/gt": dl.log_gt_occupancy(
+                    rec, rr, reader, frames, i, occ_mask, surface
+                )
             },
             "agents": lambda i: {"world/agents": dl.log_agents(rec, rr, reader, frames, i)},
         }
@@ -238,20 +247,22 @@ def _model_layers(wanted, skip, scene, data_root, version, infos_dir, models, re
             skip(m, f"no converter infos for this scene ({err})")
         return {}
     built: dict = {}
-    dev = opts["device"]
+    dev, surface = opts["device"], opts["surface_only"]
     if "img2occ" in todo:
         built["img2occ"] = Img2OccLayer(
-            models["img2occ"], infos, data_root, opts["gaussians"], opts["min_opacity"], dev
-        )
+            models["img2occ"], infos, data_root, opts["gaussians"], opts["min_opacity"], dev,
+            surface,
+        )  # fmt: skip
     if "tokenizer" in todo:
         built["tokenizer"] = TokenizerLayer(
-            models["tokenizer"], infos, data_root, opts["occ_root"], dev
+            models["tokenizer"], infos, data_root, opts["occ_root"], dev, surface
         )
     if "forecast" in todo:
         try:
             built["forecast"] = ForecastLayer(
-                models["forecast"], infos, data_root, opts["occ_root"], opts["forecast_steps"]
-            )
+                models["forecast"], infos, data_root, opts["occ_root"], opts["forecast_steps"],
+                surface,
+            )  # fmt: skip
         except ValueError as err:  # e.g. a scene shorter than the planner's history
             skip("forecast", str(err))
     return built

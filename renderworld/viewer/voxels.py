@@ -12,7 +12,7 @@ import numpy as np
 
 from renderworld.constants import FREE_ID, GRIDS, OCC3D_COLORS, OCC3D_GRID, GridSpec
 
-__all__ = ["VoxelBoxes", "occupancy_boxes", "grid_for_shape", "gaussian_arrays"]
+__all__ = ["VoxelBoxes", "occupancy_boxes", "grid_for_shape", "gaussian_arrays", "hidden_voxels"]
 
 
 @dataclass(frozen=True)
@@ -48,8 +48,30 @@ def grid_for_shape(shape) -> GridSpec:
     return GridSpec("x".join(map(str, dims)), OCC3D_GRID.range_min, OCC3D_GRID.range_max, dims)
 
 
+def hidden_voxels(occupied: np.ndarray) -> np.ndarray:
+    """[X, Y, Z] bool: occupied voxels whose six face neighbours are all occupied.
+
+    Such a voxel cannot be seen from any viewpoint (every face touches another box), so
+    leaving it out changes no picture. Outside the grid counts as free: a voxel on the grid's
+    border is never hidden.
+    """
+    occ = np.asarray(occupied, dtype=bool)
+    pad = np.pad(occ, 1, constant_values=False)
+    hidden = occ.copy()
+    x, y, z = occ.shape
+    for axis in range(3):
+        for step in (-1, 1):
+            lo = [slice(1, x + 1), slice(1, y + 1), slice(1, z + 1)]
+            lo[axis] = slice(1 + step, occ.shape[axis] + 1 + step)
+            hidden &= pad[tuple(lo)]
+    return hidden
+
+
 def occupancy_boxes(
-    occupancy: np.ndarray, grid: GridSpec | None = None, mask: np.ndarray | None = None
+    occupancy: np.ndarray,
+    grid: GridSpec | None = None,
+    mask: np.ndarray | None = None,
+    surface_only: bool = False,
 ) -> VoxelBoxes:
     """The occupied (non-free) voxels of a semantic volume as boxes.
 
@@ -59,6 +81,8 @@ def occupancy_boxes(
         grid: its grid (default: the Occ3D-range grid of that shape).
         mask: optional [X, Y, Z] bool/{0,1}: keep only voxels where it is set (e.g. the
             camera mask).
+        surface_only: leave out :func:`hidden_voxels` (decided before ``mask`` applies), which
+            no viewpoint shows; about half of a full Occ3D frame (solid buildings, ground).
 
     Returns:
         :class:`VoxelBoxes`; centre = range_min + (i + 0.5) · voxel size.
@@ -75,6 +99,8 @@ def occupancy_boxes(
     if tuple(spec.shape) != occ.shape:
         raise ValueError(f"grid: shape {tuple(spec.shape)} does not match occupancy {occ.shape}")
     keep = occ != FREE_ID
+    if surface_only:
+        keep &= ~hidden_voxels(keep)
     if mask is not None:
         m = np.asarray(mask)
         if m.shape != occ.shape:

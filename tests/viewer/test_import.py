@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from renderworld.constants import FREE_ID, GRIDS
-from renderworld.viewer import gaussian_arrays, grid_for_shape, occupancy_boxes
+from renderworld.viewer import gaussian_arrays, grid_for_shape, hidden_voxels, occupancy_boxes
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -60,3 +60,13 @@ def test_gaussians_keep_opacity_as_alpha_and_reorder_quaternions():
     np.testing.assert_array_equal(arr["quats_xyzw"], [[0, 0, 0, 1], [0, 0, 0, 1]])
     with pytest.raises(ValueError, match=r"scales: expected shape \[3, 3\]"):
         gaussian_arrays(np.zeros((v, 3)), quats, np.ones((v, 2)), np.ones(v), logits)
+
+
+def test_only_voxels_enclosed_on_all_six_faces_are_hidden():
+    occ = np.zeros((5, 5, 5), dtype=bool)
+    occ[1:4, 1:4, 1:4] = True  # a 3x3x3 block: only its centre is enclosed
+    hidden = hidden_voxels(occ)
+    assert hidden.sum() == 1 and hidden[2, 2, 2]
+    assert not hidden_voxels(np.ones((3, 3, 3), bool))[0, 1, 1], "the grid border counts as free"
+    sem = np.where(occ, 4, FREE_ID).astype(np.uint8)
+    assert len(occupancy_boxes(sem, surface_only=True).classes) == 26

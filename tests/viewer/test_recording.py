@@ -13,7 +13,7 @@ from renderworld.data import NuScenesReader
 rr = pytest.importorskip("rerun", reason="rerun-sdk is not installed (pip install '.[viz]')")
 from rerun.chunk import RrdReader  # noqa: E402
 
-from renderworld.viewer import LAYERS, write_scene_recording  # noqa: E402
+from renderworld.viewer import LAYERS, hidden_voxels, write_scene_recording  # noqa: E402
 
 SCENE = "scene-0103"  # the tiny fixture's mini_val scene, 8 keyframes
 FORECASTS = [f"/world/forecast/{s:.1f}s" for s in (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)]
@@ -48,7 +48,7 @@ def full_recording(converted, tiny_models, tmp_path_factory):
     lines: list[str] = []
     summary = write_scene_recording(
         root, out, scene=SCENE, infos_dir=infos, img2occ=img2occ, tokenizer=tok,
-        planner=planner, gaussians="splats", min_opacity=0.0, log=lines.append,
+        planner=planner, gaussians="splats", min_opacity=0.0, voxels="all", log=lines.append,
     )  # fmt: skip
     return summary, lines, read_back(out)
 
@@ -123,6 +123,13 @@ def test_missing_models_are_skipped_with_one_line_each(converted, tmp_path):
     assert any("'img2occ'" in x and "img2occ_ckpt" in x for x in skips)
     counts, timelines = read_back(summary.path)
     assert timelines["frame"] == [0, 1]
+    # Default voxels="surface": the GT boxes are the occupied voxels not hidden on six faces.
+    reader = NuScenesReader(root, "v1.0-mini")
+    for i, tok in enumerate(reader.scene_samples(SCENE)[:2]):
+        occupied = reader.occ3d(tok).semantics != FREE_ID
+        visible = int((occupied & ~hidden_voxels(occupied)).sum())
+        assert counts[("/world/ego/occupancy/gt", "Boxes3D:centers")][i] == visible
+        assert 0 < visible < occupied.sum()
     entities = {e for e, _ in counts}
     assert "/world/ego/occupancy/gt" in entities
     assert not any(e.startswith(("/world/forecast", "/world/ego/img2occ")) for e in entities)
@@ -149,6 +156,8 @@ def test_bad_arguments_name_the_argument(converted, tmp_path):
         write_scene_recording(root, tmp_path / "a.rrd", layers="lidar")
     with pytest.raises(ValueError, match="gaussians: expected one of"):
         write_scene_recording(root, tmp_path / "a.rrd", gaussians="blobs")
+    with pytest.raises(ValueError, match="voxels: expected 'surface' or 'all'"):
+        write_scene_recording(root, tmp_path / "a.rrd", voxels="some")
     with pytest.raises(ValueError, match=r"out: expected a \.rrd"):
         write_scene_recording(root, tmp_path / "a.txt")
     with pytest.raises(ValueError, match="scene: 'scene-9999' is not in"):
