@@ -12,6 +12,7 @@ RenderWorld never imports it.
 """
 
 from renderworld.viewer._rerun import INSTALL_HINT, rerun_available
+from renderworld.viewer.job import main_job_recording
 from renderworld.viewer.recording import (
     DATA_LAYERS,
     LAYERS,
@@ -37,6 +38,7 @@ __all__ = [
     "gaussian_arrays",
     "grid_for_shape",
     "hidden_voxels",
+    "main_job_recording",
     "occupancy_boxes",
     "rerun_available",
     "write_scene_recording",

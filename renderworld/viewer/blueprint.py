@@ -21,8 +21,8 @@ def scene_blueprint(rrb, model_views: list[str], follow_ego: bool = True):
     """
     eye = rrb.EyeControls3D(
         kind=rrb.Eye3DKind.Orbital,
-        position=[-28.0, -22.0, 38.0],
-        look_target=[8.0, 0.0, 0.0],
+        position=[-38.0, -30.0, 48.0],
+        look_target=[6.0, 0.0, 0.0],
         eye_up=[0.0, 0.0, 1.0],
         tracking_entity="/world/ego" if follow_ego else None,
     )
