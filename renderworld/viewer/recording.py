@@ -246,23 +246,23 @@ def _model_layers(wanted, skip, scene, data_root, version, infos_dir, models, re
         for m in todo:
             skip(m, f"no converter infos for this scene ({err})")
         return {}
-    built: dict = {}
-    dev, surface = opts["device"], opts["surface_only"]
-    if "img2occ" in todo:
-        built["img2occ"] = Img2OccLayer(
+    dev, surface, occ_root = opts["device"], opts["surface_only"], opts["occ_root"]
+    makers = {
+        "img2occ": lambda: Img2OccLayer(
             models["img2occ"], infos, data_root, opts["gaussians"], opts["min_opacity"], dev,
             surface,
-        )  # fmt: skip
-    if "tokenizer" in todo:
-        built["tokenizer"] = TokenizerLayer(
-            models["tokenizer"], infos, data_root, opts["occ_root"], dev, surface
-        )
-    if "forecast" in todo:
+        ),
+        "tokenizer": lambda: TokenizerLayer(
+            models["tokenizer"], infos, data_root, occ_root, dev, surface
+        ),
+        "forecast": lambda: ForecastLayer(
+            models["forecast"], infos, data_root, occ_root, opts["forecast_steps"], surface
+        ),
+    }  # fmt: skip
+    built: dict = {}
+    for m in todo:
         try:
-            built["forecast"] = ForecastLayer(
-                models["forecast"], infos, data_root, opts["occ_root"], opts["forecast_steps"],
-                surface,
-            )  # fmt: skip
-        except ValueError as err:  # e.g. a scene shorter than the planner's history
-            skip("forecast", str(err))
+            built[m] = makers[m]()
+        except ValueError as err:  # missing inputs: 2-D labels, GT files, a too short scene
+            skip(m, str(err))
     return built

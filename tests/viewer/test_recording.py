@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import dataclasses
 
 import numpy as np
 import pytest
@@ -189,3 +190,24 @@ def test_tool_writes_the_recording_and_says_how_to_open_it(converted, tmp_path):
     counts, timelines = read_back(out)
     assert timelines["frame"] == [0]
     assert {e for e, _ in counts} == {"/world/ego", "/world/ego/box", "/world/ego/lidar"}
+
+
+def test_a_scene_shorter_than_the_planner_history_skips_the_forecast(converted, tiny_models,
+                                                                     tmp_path):  # fmt: skip
+    from renderworld.planning import Planner
+    from renderworld.world import WorldModel
+
+    root, infos = converted
+    _, tok, planner = tiny_models
+    long_history = dataclasses.replace(planner.config, history_frames=9)
+    lines: list[str] = []
+    summary = write_scene_recording(
+        root, tmp_path / "s.rrd", scene=SCENE, infos_dir=infos, layers=["ego", "forecast"],
+        planner=Planner(tok, WorldModel(long_history)), log=lines.append,
+    )  # fmt: skip
+    assert summary.skipped == [
+        "forecast: history/future: windows of 9 keyframes need a scene that long; the longest has 8"
+    ]
+    assert [x for x in lines if "skipping" in x] == [
+        f"viewer: skipping layer 'forecast': {summary.skipped[0][len('forecast: ') :]}"
+    ]
