@@ -23,6 +23,7 @@ def main(cfg: DictConfig) -> dict:
     from renderworld.viewer import rerun_available, write_scene_recording
     from renderworld.viewer._rerun import INSTALL_HINT
     from renderworld.viewer.checkpoints import load_viewer_models
+    from renderworld.viewer.job import split_scene
 
     if not rerun_available():
         sys.exit(f"tools/view.py needs rerun-sdk: {INSTALL_HINT}")
@@ -33,11 +34,17 @@ def main(cfg: DictConfig) -> dict:
         planner_bundle=cfg.planner_bundle,
         device=str(cfg.device),
     )
-    out = cfg.out or f"{cfg.scene or 'scene'}.rrd"
+    scene = cfg.scene
+    if scene is None and cfg.split is not None:
+        infos_dir = cfg.infos_dir or Path(cfg.data_root) / "renderworld_infos" / str(cfg.version)
+        scene = split_scene(infos_dir, str(cfg.split))
+        if scene is None:
+            sys.exit(f"split={cfg.split}: no infos_{cfg.split}.parquet with a scene in {infos_dir}")
+    out = cfg.out or f"{scene or 'scene'}.rrd"
     summary = write_scene_recording(
         cfg.data_root,
         out,
-        scene=cfg.scene,
+        scene=scene,
         version=str(cfg.version),
         infos_dir=cfg.infos_dir,
         layers=list(OmegaConf.to_container(cfg.layers)),

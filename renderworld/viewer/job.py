@@ -12,7 +12,7 @@ from pathlib import Path
 
 from renderworld.viewer._rerun import INSTALL_HINT, rerun_available
 
-__all__ = ["JOB_CHECKPOINTS", "main_job_recording", "recording_markdown", "val_scene"]
+__all__ = ["JOB_CHECKPOINTS", "main_job_recording", "recording_markdown", "split_scene"]
 
 #: Checkpoints of the main job's runs, relative to its output folder.
 JOB_CHECKPOINTS = {
@@ -22,14 +22,13 @@ JOB_CHECKPOINTS = {
 }
 
 
-def val_scene(infos_dir: str | os.PathLike) -> str | None:
-    """The first scene of the converter's ``val`` split, or None when there is none."""
+def split_scene(infos_dir: str | os.PathLike, split: str = "val") -> str | None:
+    """The first scene of a converter split (``infos_<split>.parquet``), or None without one."""
     from renderworld.data import load_infos
-    from renderworld.data.errors import DatasetError
 
     try:
-        names = load_infos(infos_dir, "val")["scene_name"]
-    except (DatasetError, ValueError, OSError):
+        names = load_infos(infos_dir, split)["scene_name"]
+    except (ValueError, OSError):  # DatasetError is a ValueError
         return None
     return str(names.iloc[0]) if len(names) else None
 
@@ -85,7 +84,7 @@ def main_job_recording(
     from renderworld.viewer.recording import write_scene_recording
 
     infos_dir = Path(infos_dir or data_root / "renderworld_infos" / version)
-    scene = scene or val_scene(infos_dir)
+    scene = scene or split_scene(infos_dir, "val")
     paths = {k: out / v for k, v in JOB_CHECKPOINTS.items()}
     models = load_viewer_models(**paths, device=device)
     summary = write_scene_recording(

@@ -178,7 +178,7 @@ def test_tool_writes_the_recording_and_says_how_to_open_it(converted, tmp_path):
     out = tmp_path / "tool.rrd"
     run = subprocess.run(
         [sys.executable, "tools/view.py", f"data_root={root}", f"infos_dir={infos}",
-         f"scene={SCENE}", f"out={out}", "max_frames=1", "layers=[ego,lidar,img2occ]",
+         "split=val", f"out={out}", "max_frames=1", "layers=[ego,lidar,img2occ]",
          f"img2occ_ckpt={tmp_path / 'absent.pt'}"],
         cwd=Path(__file__).resolve().parents[2], capture_output=True, text=True, timeout=300,
     )  # fmt: skip
@@ -187,6 +187,7 @@ def test_tool_writes_the_recording_and_says_how_to_open_it(converted, tmp_path):
     assert skips == [f"viewer: skipping layer 'img2occ': img2occ_ckpt "
                      f"{str(tmp_path / 'absent.pt')!r} does not exist"]  # fmt: skip
     assert f"rerun {out}" in run.stdout
+    assert f"1 keyframes of {SCENE}" in run.stdout  # split=val: the val split's first scene
     counts, timelines = read_back(out)
     assert timelines["frame"] == [0]
     assert {e for e, _ in counts} == {"/world/ego", "/world/ego/box", "/world/ego/lidar"}
