@@ -212,3 +212,18 @@ def test_a_scene_shorter_than_the_planner_history_skips_the_forecast(converted, 
     assert [x for x in lines if "skipping" in x] == [
         f"viewer: skipping layer 'forecast': {summary.skipped[0][len('forecast: ') :]}"
     ]
+
+
+@pytest.mark.parametrize(
+    ("mode", "column"),
+    [("ellipsoids", "Ellipsoids3D:centers"), ("points", "Points3D:positions")],
+)
+def test_gaussians_as_ellipsoids_or_points(converted, tiny_models, tmp_path, mode, column):
+    root, infos = converted
+    img2occ = tiny_models[0]
+    summary = write_scene_recording(
+        root, tmp_path / "g.rrd", scene=SCENE, infos_dir=infos, img2occ=img2occ,
+        layers=["img2occ"], gaussians=mode, min_opacity=0.0, max_frames=1, log=None,
+    )  # fmt: skip
+    counts, _ = read_back(summary.path)
+    assert counts[("/world/ego/img2occ/gaussians", column)] == {0: 10_000}
