@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from renderworld.viewer import job
-from tests.viewer.test_checkpoints import _tokenizer_ckpt
+from tests.viewer.helpers import tokenizer_checkpoint
 
 
 def test_without_rerun_the_report_says_how_to_install_it(monkeypatch, tmp_path):
@@ -20,7 +20,7 @@ def test_records_a_val_scene_with_the_checkpoints_the_job_has(converted, tiny_mo
     root, infos = converted
     _, tok, _ = tiny_models
     (tmp_path / "tokenizer" / "checkpoints").mkdir(parents=True)
-    _tokenizer_ckpt(tok, tmp_path / "tokenizer" / "checkpoints" / "best.pt")
+    tokenizer_checkpoint(tok, tmp_path / "tokenizer" / "checkpoints" / "best.pt")
     lines: list[str] = []
     text = job.main_job_recording(tmp_path, root, infos_dir=infos, log=lines.append)
     assert (tmp_path / "scene.rrd").is_file()

@@ -1,0 +1,24 @@
+"""Helpers of the viewer tests."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import yaml
+
+from renderworld.training.checkpoint import save_checkpoint
+
+
+def tokenizer_checkpoint(tok, path):
+    """A ``tokenizer`` checkpoint of ``tok`` with the run config its loader reads."""
+    cfg = dataclasses.asdict(tok.cfg)
+    model = {k: list(v) if isinstance(v, tuple) else v for k, v in cfg.items()}
+    model.pop("grid_shape")
+    config = {
+        "grid": {"name": "coarse", "range_min": [-40.0, -40.0, -1.0],
+                 "range_max": [40.0, 40.0, 5.4], "shape": list(tok.cfg.grid_shape)},
+        "stage": {"name": "tokenizer", "model": model},
+    }  # fmt: skip
+    state = {"schema_version": 1, "stage": "tokenizer", "step": 0,
+             "config": yaml.safe_dump(config), "model": tok.state_dict()}  # fmt: skip
+    return save_checkpoint(state, path)
