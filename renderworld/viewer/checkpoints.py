@@ -86,21 +86,27 @@ def load_viewer_models(
     if path is not None and models["tokenizer"] is None:
         why["forecast"] = why.get("tokenizer", "world_model_ckpt needs its tokenizer_ckpt")
     elif path is not None:
-        models["planner"] = _planner(path, models["tokenizer"], device)
+        models["planner"] = _planner(path, models["tokenizer"], Path(tokenizer_ckpt), device)
     return models
 
 
-def _planner(world_model_ckpt: Path, tokenizer, device: str):
-    """A ``Planner`` of a world-model checkpoint on an already loaded tokenizer."""
+def _planner(world_model_ckpt: Path, tokenizer, tokenizer_ckpt: Path, device: str):
+    """A ``Planner`` of a world-model checkpoint on an already loaded tokenizer (a warning when
+    ``tokenizer_ckpt`` is not the file the world model was trained on)."""
     from omegaconf import OmegaConf
 
     from renderworld.planning import Planner
     from renderworld.training.checkpoint import check_state_dict_keys, load_checkpoint
-    from renderworld.training.stages.world_model_settings import world_model_config
+    from renderworld.training.stages.world_model_settings import (
+        check_same_tokenizer,
+        world_model_config,
+    )
     from renderworld.world import WorldModel
 
     ckpt = load_checkpoint(world_model_ckpt, expected_stage="world_model")
-    model = WorldModel(world_model_config(OmegaConf.create(ckpt["config"]), tokenizer.cfg))
+    cfg = OmegaConf.create(ckpt["config"])
+    check_same_tokenizer(cfg, tokenizer_ckpt)
+    model = WorldModel(world_model_config(cfg, tokenizer.cfg))
     check_state_dict_keys(model, ckpt["model"], source=f"checkpoint {str(world_model_ckpt)!r}")
     model.load_state_dict(ckpt["model"], strict=True)
     return Planner(tokenizer, model, device=device)

@@ -22,3 +22,17 @@ def tokenizer_checkpoint(tok, path):
     state = {"schema_version": 1, "stage": "tokenizer", "step": 0,
              "config": yaml.safe_dump(config), "model": tok.state_dict()}  # fmt: skip
     return save_checkpoint(state, path)
+
+
+def world_model_checkpoint(wm, tokenizer_ckpt, path):
+    """A ``world_model`` checkpoint of ``wm`` trained (as its config says) on ``tokenizer_ckpt``."""
+    c = wm.config
+    model = {"embed_dim": c.embed_dim, "num_heads": c.num_heads, "num_scales": c.num_scales,
+             "layers_per_scale": list(c.layers_per_scale)}  # fmt: skip
+    config = {
+        "stage": {"name": "world_model", "history": c.history_frames, "future": c.future_frames,
+                  "lambda_l2": 1.0, "tokenizer_ckpt": str(tokenizer_ckpt), "model": model},
+    }  # fmt: skip
+    state = {"schema_version": 1, "stage": "world_model", "step": 0,
+             "config": yaml.safe_dump(config), "model": wm.state_dict()}  # fmt: skip
+    return save_checkpoint(state, path)
