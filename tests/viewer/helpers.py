@@ -36,3 +36,20 @@ def world_model_checkpoint(wm, tokenizer_ckpt, path):
     state = {"schema_version": 1, "stage": "world_model", "step": 0,
              "config": yaml.safe_dump(config), "model": wm.state_dict()}  # fmt: skip
     return save_checkpoint(state, path)
+
+
+def img2occ_checkpoint(model, path):
+    """An ``img2occ`` checkpoint of ``model`` (the tiny coarse-grid one of conftest)."""
+    c = model.cfg
+    config = {
+        "grid": {"name": "coarse", "range_min": list(c.grid.range_min),
+                 "range_max": list(c.grid.range_max), "shape": list(c.grid.shape)},
+        "stage": {"name": "img2occ", "input_size": list(c.input_size),
+                  "render_size": list(c.render_size), "adjacent_frames": 0,
+                  "model": {"encoder_channels": list(c.encoder_channels),
+                            "feature_channels": c.feature_channels,
+                            "head_channels": c.head_channels, "head_blocks": c.head_blocks}},
+    }  # fmt: skip
+    state = {"schema_version": 1, "stage": "img2occ", "step": 0,
+             "config": yaml.safe_dump(config), "model": model.state_dict()}  # fmt: skip
+    return save_checkpoint(state, path)

@@ -8,7 +8,11 @@ import torch
 from renderworld.planning import save_planner_bundle
 from renderworld.training.checkpoint import CheckpointError
 from renderworld.viewer.checkpoints import load_viewer_models
-from tests.viewer.helpers import tokenizer_checkpoint, world_model_checkpoint
+from tests.viewer.helpers import (
+    img2occ_checkpoint,
+    tokenizer_checkpoint,
+    world_model_checkpoint,
+)
 
 
 def test_loads_given_files_and_explains_missing_ones(tiny_models, tmp_path):
@@ -48,6 +52,15 @@ def test_a_world_model_checkpoint_plans_like_the_model_it_holds(tiny_models, tmp
     other.write_bytes(tok_path.read_bytes())
     with pytest.warns(UserWarning, match="differs from the tokenizer the world model was trained"):
         load_viewer_models(tokenizer_ckpt=other, world_model_ckpt=wm_path)
+
+
+def test_an_img2occ_checkpoint_keeps_weights_and_readout_threshold(tiny_models, tmp_path):
+    img2occ = tiny_models[0]
+    path = img2occ_checkpoint(img2occ, tmp_path / "i2o.pt")
+    loaded = load_viewer_models(img2occ_ckpt=path)["img2occ"]
+    assert not loaded.training
+    for k, v in img2occ.state_dict().items():
+        assert torch.equal(loaded.state_dict()[k], v), k
 
 
 def test_a_file_of_another_stage_is_an_error_naming_it(tiny_models, tmp_path):
