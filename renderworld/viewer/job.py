@@ -12,7 +12,18 @@ from pathlib import Path
 
 from renderworld.viewer._rerun import INSTALL_HINT, rerun_available
 
-__all__ = ["JOB_CHECKPOINTS", "main_job_recording", "recording_markdown", "split_scene"]
+__all__ = [
+    "JOB_CHECKPOINTS",
+    "JOB_RECORDING",
+    "main_job_recording",
+    "recording_markdown",
+    "report_section",
+    "split_scene",
+    "view_command",
+]
+
+#: Where the main job's recording goes, relative to its output folder (its step's own folder).
+JOB_RECORDING = "viewer/scene.rrd"
 
 #: Checkpoints of the main job's runs, relative to its output folder.
 JOB_CHECKPOINTS = {
@@ -42,6 +53,8 @@ def recording_markdown(path: Path, report_dir: Path, summary=None, skipped=()) -
             f" ({summary.bytes / 2**20:.1f} MiB, {summary.frames} keyframes of {summary.scene}, "
             f"written in {summary.seconds:.0f} s)."
         )
+    else:
+        lines[0] += f" ({Path(path).stat().st_size / 2**20:.1f} MiB)."
     lines.append(
         f"Open it with `rerun {rel}` (desktop viewer) or `rerun --web-viewer {rel}` (browser); "
         f"install the viewer with `{INSTALL_HINT}`."
@@ -50,12 +63,33 @@ def recording_markdown(path: Path, report_dir: Path, summary=None, skipped=()) -
     return "\n\n".join(lines)
 
 
+def view_command(python: str, out: Path, data_root: Path, version: str = "v1.0-mini") -> tuple:
+    """The main job's step command: ``tools/view.py`` on the val split's first scene with the
+    job's checkpoints (:data:`JOB_CHECKPOINTS`), writing ``<out>/`` :data:`JOB_RECORDING`."""
+    ckpts = [f"{k}={Path(out) / v}" for k, v in JOB_CHECKPOINTS.items()]
+    return (
+        python, "tools/view.py", f"data_root={data_root}", f"version={version}", "split=val",
+        f"out={Path(out) / JOB_RECORDING}", *ckpts,
+    )  # fmt: skip
+
+
+def report_section(out: str | os.PathLike) -> str:
+    """The report's paragraph for ``<out>/`` :data:`JOB_RECORDING`: a link and how to open it,
+    or one line saying why there is none."""
+    path = Path(out) / JOB_RECORDING
+    if path.is_file():
+        return recording_markdown(path, Path(out))
+    if not rerun_available():
+        return f"No 3-D recording: rerun-sdk is not installed ({INSTALL_HINT})."
+    return f"No 3-D recording: {JOB_RECORDING} was not written (see the viewer step's log)."
+
+
 def main_job_recording(
     out: str | os.PathLike,
     data_root: str | os.PathLike,
     version: str = "v1.0-mini",
     scene: str | None = None,
-    filename: str = "scene.rrd",
+    filename: str = JOB_RECORDING,
     infos_dir: str | os.PathLike | None = None,
     device: str = "cpu",
     log=print,

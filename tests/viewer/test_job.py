@@ -23,10 +23,35 @@ def test_records_a_val_scene_with_the_checkpoints_the_job_has(converted, tiny_mo
     tokenizer_checkpoint(tok, tmp_path / "tokenizer" / "checkpoints" / "best.pt")
     lines: list[str] = []
     text = job.main_job_recording(tmp_path, root, infos_dir=infos, log=lines.append)
-    assert (tmp_path / "scene.rrd").is_file()
-    assert text.startswith("3-D recording of one mini_val scene: [scene.rrd](scene.rrd)")
+    assert (tmp_path / "viewer" / "scene.rrd").is_file()
+    link = "[viewer/scene.rrd](viewer/scene.rrd)"
+    assert text.startswith(f"3-D recording of one mini_val scene: {link}")
     assert "8 keyframes of scene-0103" in text  # the val split's scene of the tiny fixture
-    assert "`rerun scene.rrd`" in text and "`rerun --web-viewer scene.rrd`" in text
+    assert "`rerun viewer/scene.rrd`" in text and "`rerun --web-viewer viewer/scene.rrd`" in text
     skips = [x for x in lines if "skipping" in x]
     assert len(skips) == 2 and all("does not exist" in x for x in skips)
     assert "Layer left out: img2occ: img2occ_ckpt" in text
+
+
+def test_the_job_step_writes_what_the_report_section_links(converted, tiny_models, tmp_path):
+    pytest.importorskip("rerun", reason="rerun-sdk is not installed (pip install '.[viz]')")
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root, infos = converted
+    assert job.report_section(tmp_path).startswith("No 3-D recording: viewer/scene.rrd was not")
+    _, tok, _ = tiny_models
+    (tmp_path / "tokenizer" / "checkpoints").mkdir(parents=True)
+    tokenizer_checkpoint(tok, tmp_path / "tokenizer" / "checkpoints" / "best.pt")
+    cmd = job.view_command(sys.executable, tmp_path, root)
+    run = subprocess.run(
+        [*cmd, f"infos_dir={infos}", "max_frames=2"], capture_output=True, text=True,
+        cwd=Path(__file__).resolve().parents[2], timeout=300,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "2 keyframes of scene-0103" in run.stdout
+    assert run.stdout.count("skipping layer") == 2  # no img2occ / world-model checkpoint
+    section = job.report_section(tmp_path)
+    assert section.startswith("3-D recording of one mini_val scene: [viewer/scene.rrd]")
+    assert "`rerun viewer/scene.rrd`" in section
