@@ -59,6 +59,7 @@ def main(cfg: DictConfig) -> dict:
         device=str(cfg.device),
         log=lambda m: None if m.startswith("viewer: keyframe") else print(m, flush=True),
         reasons=models.reasons,
+        first_view=str(cfg.first_view),
         **models,
     )
     print(f"wrote {summary.describe()}")

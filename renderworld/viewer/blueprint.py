@@ -10,7 +10,7 @@ __all__ = ["scene_blueprint"]
 _CONTEXT = ["+ /world/ego/box", "+ /world/agents"]
 
 
-def scene_blueprint(rrb, model_views: list[str], follow_ego: bool = True):
+def scene_blueprint(rrb, model_views: list[str], follow_ego: bool = True, first: str = "data"):
     """A ``rrb.Blueprint``: tabs of 3-D views (the data, then one per model layer present)
     next to a grid of the six camera images.
 
@@ -18,7 +18,13 @@ def scene_blueprint(rrb, model_views: list[str], follow_ego: bool = True):
         rrb: the ``rerun.blueprint`` module.
         model_views: model layers written (``"img2occ"``, ``"tokenizer"``, ``"forecast"``).
         follow_ego: the 3-D views' eye follows ``world/ego`` (from behind, above).
+        first: the tab shown first: ``"data"`` or one of ``model_views``.
+
+    Raises:
+        ValueError: ``first`` is neither ``"data"`` nor a written model layer.
     """
+    if first != "data" and first not in model_views:
+        raise ValueError(f"first_view: expected 'data' or one of {model_views}, got {first!r}")
     eye = rrb.EyeControls3D(
         kind=rrb.Eye3DKind.Orbital,
         position=[-38.0, -30.0, 48.0],
@@ -64,7 +70,11 @@ def scene_blueprint(rrb, model_views: list[str], follow_ego: bool = True):
         grid_columns=2,
     )
     return rrb.Blueprint(
-        rrb.Horizontal(rrb.Tabs(*views), cameras, column_shares=[3, 2]),
+        rrb.Horizontal(
+            rrb.Tabs(*views, active_tab=0 if first == "data" else 1 + model_views.index(first)),
+            cameras,
+            column_shares=[3, 2],
+        ),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
         rrb.TimePanel(state="collapsed"),

@@ -94,6 +94,7 @@ def write_scene_recording(
     occ_root: str | os.PathLike | None = None,
     device: str = "cpu",
     reasons: dict[str, str] | None = None,
+    first_view: str = "data",
     reader=None,
     log: Callable[[str], None] | None = print,
 ) -> RecordingSummary:
@@ -126,6 +127,8 @@ def write_scene_recording(
         device: where the models run.
         reasons: {layer: why its model is None} (e.g. a checkpoint file that does not exist),
             printed instead of the generic skip line.
+        first_view: the 3-D tab the viewer opens on: ``"data"``, ``"img2occ"``, ``"tokenizer"``
+            or ``"forecast"`` (one that is written; else ValueError).
         reader: an open :class:`~renderworld.data.NuScenesReader` of ``data_root`` (optional).
         log: receives the skip lines and progress (None: silent).
 
@@ -172,12 +175,13 @@ def write_scene_recording(
     if "lidar" in wanted and not reader.has_lidarseg:
         say("viewer: no lidarseg in this dataset: LiDAR points are drawn as class 'others'")
 
+    blueprint = scene_blueprint(rrb, list(models), first=first_view)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.{uuid.uuid4().hex[:8]}.tmp.rrd"
     rec = rr.RecordingStream("renderworld", recording_id=f"{frames.scene}-{uuid.uuid4().hex[:8]}")
     instances: dict[str, int] = {}
     try:
-        rec.save(tmp, default_blueprint=scene_blueprint(rrb, list(models)))
+        rec.save(tmp, default_blueprint=blueprint)
         rec.log("/", rr.TextDocument(f"RenderWorld scene {frames.scene}"), static=True)
         dl.log_static(rec, rr)
         data_fns = {

@@ -157,6 +157,8 @@ def test_bad_arguments_name_the_argument(converted, tmp_path):
         write_scene_recording(root, tmp_path / "a.rrd", layers="lidar")
     with pytest.raises(ValueError, match="gaussians: expected one of"):
         write_scene_recording(root, tmp_path / "a.rrd", gaussians="blobs")
+    with pytest.raises(ValueError, match=r"first_view: expected 'data' or one of \[\]"):
+        write_scene_recording(root, tmp_path / "a.rrd", first_view="forecast", layers=["ego"])
     with pytest.raises(ValueError, match="voxels: expected 'surface' or 'all'"):
         write_scene_recording(root, tmp_path / "a.rrd", voxels="some")
     with pytest.raises(ValueError, match=r"out: expected a \.rrd"):
