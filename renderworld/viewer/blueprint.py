@@ -2,15 +2,27 @@
 
 from __future__ import annotations
 
-from renderworld.constants import CAMERA_NAMES
+from renderworld.constants import CAMERA_NAMES, FUTURE_FRAMES, KEYFRAME_DT
 
-__all__ = ["scene_blueprint"]
+__all__ = ["scene_blueprint", "forecast_entity"]
+
+
+def forecast_entity(step: int) -> str:
+    """Entity of the forecast ``step`` keyframes ahead (1-based): ``world/forecast/<s>s``."""
+    return f"world/forecast/{step * KEYFRAME_DT:.1f}s"
+
 
 # Entities each model view shows besides its own (the ego box and agents give it context).
 _CONTEXT = ["+ /world/ego/box", "+ /world/agents"]
 
 
-def scene_blueprint(rrb, model_views: list[str], follow_ego: bool = True, first: str = "data"):
+def scene_blueprint(
+    rrb,
+    model_views: list[str],
+    follow_ego: bool = True,
+    first: str = "data",
+    forecast_shown: int = FUTURE_FRAMES,
+):
     """A ``rrb.Blueprint``: tabs of 3-D views (the data, then one per model layer present)
     next to a grid of the six camera images.
 
@@ -19,6 +31,8 @@ def scene_blueprint(rrb, model_views: list[str], follow_ego: bool = True, first:
         model_views: model layers written (``"img2occ"``, ``"tokenizer"``, ``"forecast"``).
         follow_ego: the 3-D views' eye follows ``world/ego`` (from behind, above).
         first: the tab shown first: ``"data"`` or one of ``model_views``.
+        forecast_shown: the forecast (steps ahead) visible at first in the forecast tab; the
+            other horizons are listed there, hidden (overlaid, six volumes hide each other).
 
     Raises:
         ValueError: ``first`` is neither ``"data"`` nor a written model layer.
@@ -56,6 +70,11 @@ def scene_blueprint(rrb, model_views: list[str], follow_ego: bool = True, first:
             eye_controls=eye,
         )  # fmt: skip
     ]
+    hidden = {
+        forecast_entity(k): rrb.EntityBehavior(visible=False)
+        for k in range(1, FUTURE_FRAMES + 1)
+        if k != forecast_shown
+    }
     for name in model_views:
         views.append(
             rrb.Spatial3DView(
@@ -63,6 +82,7 @@ def scene_blueprint(rrb, model_views: list[str], follow_ego: bool = True, first:
                 origin="/world",
                 contents=[*model_content[name], *_CONTEXT],
                 eye_controls=eye,
+                overrides=hidden if name == "forecast" else None,
             )
         )
     cameras = rrb.Grid(

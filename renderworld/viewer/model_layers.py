@@ -26,10 +26,11 @@ import numpy as np
 import pandas as pd
 import torch
 
-from renderworld.constants import COMMANDS, FUTURE_FRAMES, KEYFRAME_DT
+from renderworld.constants import COMMANDS, FUTURE_FRAMES
 from renderworld.data import load_infos
 from renderworld.metrics.collision import trajectory_headings
 from renderworld.viewer._rerun import transform
+from renderworld.viewer.blueprint import forecast_entity
 from renderworld.viewer.data_layers import log_voxels
 from renderworld.viewer.scene import SceneFrames
 from renderworld.viewer.voxels import gaussian_arrays, grid_for_shape
@@ -173,11 +174,6 @@ class TokenizerLayer:
         entity = "world/ego/tokenizer/reconstruction"
         n = log_voxels(rec, rr, entity, rec_occ, self.grid, None, self.surface_only)
         return {entity: n}
-
-
-def forecast_entity(step: int) -> str:
-    """Entity of the forecast ``step`` keyframes ahead (1-based): ``world/forecast/<s>s``."""
-    return f"world/forecast/{step * KEYFRAME_DT:.1f}s"
 
 
 class ForecastLayer:

@@ -175,7 +175,8 @@ def write_scene_recording(
     if "lidar" in wanted and not reader.has_lidarseg:
         say("viewer: no lidarseg in this dataset: LiDAR points are drawn as class 'others'")
 
-    blueprint = scene_blueprint(rrb, list(models), first=first_view)
+    shown = models["forecast"].steps if "forecast" in models else 0
+    blueprint = scene_blueprint(rrb, list(models), first=first_view, forecast_shown=shown)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.{uuid.uuid4().hex[:8]}.tmp.rrd"
     rec = rr.RecordingStream("renderworld", recording_id=f"{frames.scene}-{uuid.uuid4().hex[:8]}")
