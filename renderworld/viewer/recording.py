@@ -101,7 +101,8 @@ def write_scene_recording(
     """Write a Rerun recording of one scene with every requested layer that has its inputs.
 
     A model layer without its model (None) or without infos is skipped with one line through
-    ``log`` saying so (also listed in the summary); data layers are always written.
+    ``log`` saying so (also listed in the summary); so is GT occupancy when the dataset has no
+    Occ3D file for any keyframe (a few missing files are reported, not listed as skipped).
 
     Args:
         data_root: nuScenes-format dataset folder.
@@ -181,6 +182,7 @@ def write_scene_recording(
     tmp = out.parent / f".{out.name}.{uuid.uuid4().hex[:8]}.tmp.rrd"
     rec = rr.RecordingStream("renderworld", recording_id=f"{frames.scene}-{uuid.uuid4().hex[:8]}")
     instances: dict[str, int] = {}
+    missing: dict[str, int] = {}
     try:
         rec.save(tmp, default_blueprint=blueprint)
         rec.log("/", rr.TextDocument(f"RenderWorld scene {frames.scene}"), static=True)
@@ -210,10 +212,17 @@ def write_scene_recording(
             for k, v in counts.items():
                 if v >= 0:
                     instances[k] = instances.get(k, 0) + v
+                else:  # -1: the keyframe has no input file for this layer (Occ3D GT)
+                    missing[k] = missing.get(k, 0) + 1
             say(f"viewer: keyframe {i + 1}/{len(frames)} of {frames.scene}")
         rec.flush()
         rec.disconnect()
         os.replace(tmp, out)
+        for n in missing.values():  # only GT occupancy reports missing files
+            if n == len(frames):
+                skip("gt_occupancy", "no Occ3D GT file for any keyframe of the scene")
+            else:
+                say(f"viewer: gt_occupancy: no Occ3D GT file for {n} of {len(frames)} keyframes")
     except BaseException:
         rec.disconnect()
         tmp.unlink(missing_ok=True)

@@ -229,3 +229,20 @@ def test_gaussians_as_ellipsoids_or_points(converted, tiny_models, tmp_path, mod
     )  # fmt: skip
     counts, _ = read_back(summary.path)
     assert counts[("/world/ego/img2occ/gaussians", column)] == {0: 10_000}
+
+
+def test_a_dataset_without_occ3d_skips_gt_occupancy_with_one_line(converted, tmp_path):
+    import shutil
+
+    root, _ = converted
+    copy = tmp_path / "no_gts"
+    shutil.copytree(root, copy, ignore=shutil.ignore_patterns("gts", "renderworld_*"))
+    lines: list[str] = []
+    summary = write_scene_recording(
+        copy, tmp_path / "n.rrd", scene=SCENE, layers=["ego", "gt_occupancy"], max_frames=2,
+        log=lines.append,
+    )  # fmt: skip
+    assert summary.skipped == ["gt_occupancy: no Occ3D GT file for any keyframe of the scene"]
+    assert sum("skipping layer 'gt_occupancy'" in x for x in lines) == 1
+    counts, _ = read_back(summary.path)
+    assert not any(e == "/world/ego/occupancy/gt" for e, _ in counts)
