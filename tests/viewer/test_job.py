@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from renderworld.viewer import job
@@ -37,7 +39,6 @@ def test_the_job_step_writes_what_the_report_section_links(converted, tiny_model
     pytest.importorskip("rerun", reason="rerun-sdk is not installed (pip install '.[viz]')")
     import subprocess
     import sys
-    from pathlib import Path
 
     root, infos = converted
     assert job.report_section(tmp_path).startswith("No 3-D recording: viewer/scene.rrd was not")
@@ -55,3 +56,49 @@ def test_the_job_step_writes_what_the_report_section_links(converted, tiny_model
     section = job.report_section(tmp_path)
     assert section.startswith("3-D recording of one mini_val scene: [viewer/scene.rrd]")
     assert "`rerun viewer/scene.rrd`" in section
+
+
+def _job_cfg(tmp_path):
+    from omegaconf import OmegaConf
+
+    repo = Path(__file__).resolve().parents[2]
+    cfg = OmegaConf.load(repo / "configs" / "pipeline.yaml")
+    cfg.out, cfg.data_root = str(tmp_path / "out"), str(tmp_path / "data")
+    return cfg, repo
+
+
+def test_the_main_job_records_after_its_trainings_only_with_rerun(monkeypatch, tmp_path):
+    import renderworld.viewer
+    from renderworld.pipeline.main_job import main_job_steps
+
+    cfg, repo = _job_cfg(tmp_path)
+    monkeypatch.setattr(renderworld.viewer, "rerun_available", lambda: True)
+    steps = main_job_steps(cfg, repo)
+    names = [s.name for s in steps]
+    step = steps[names.index("viewer")]
+    assert set(step.depends_on) == {"infos", "img2occ", "tokenizer", "world_model"}
+    assert names.index("viewer") > max(names.index(n) for n in step.depends_on)
+    assert step.out_dir == tmp_path / "out" / "viewer"
+    args = dict(a.split("=", 1) for a in step.command[2:])
+    assert step.command[1] == "tools/view.py" and args["split"] == "val"
+    assert args["out"] == str(tmp_path / "out" / "viewer" / "scene.rrd")
+    for run in ("img2occ", "tokenizer", "world_model"):
+        assert args[f"{run}_ckpt"] == str(tmp_path / "out" / run / "checkpoints" / "best.pt")
+    monkeypatch.setattr(renderworld.viewer, "rerun_available", lambda: False)
+    assert "viewer" not in [s.name for s in main_job_steps(cfg, repo)]
+
+
+def test_the_report_links_the_recording_or_says_why_not(monkeypatch, tmp_path):
+    from renderworld.pipeline.job_report import main_job_report
+
+    cfg, _ = _job_cfg(tmp_path)
+    out = tmp_path / "out"
+    monkeypatch.setattr(job, "rerun_available", lambda: False)
+    text = main_job_report(cfg, out, [], 1.0).read_text()
+    assert "3-D recording (Rerun)" in text
+    assert "No 3-D recording: rerun-sdk is not installed (pip install 'renderworld[viz]'" in text
+    (out / "viewer").mkdir(parents=True)
+    (out / "viewer" / "scene.rrd").write_bytes(b"\0" * 2**20)
+    text = main_job_report(cfg, out, [], 1.0).read_text()
+    assert "[viewer/scene.rrd](viewer/scene.rrd) (1.0 MiB)" in text
+    assert "`rerun viewer/scene.rrd`" in text
