@@ -28,6 +28,17 @@ def test_rerun_is_not_imported(modules):
     assert out.stdout.strip() == "[]"
 
 
+def test_the_viewer_package_itself_imports_neither_rerun_nor_torch():
+    code = (
+        "import sys, renderworld.viewer\nprint([m for m in ('rerun', 'torch') if m in sys.modules])"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
 def test_occupied_voxels_become_boxes_at_their_centres():
     occ = np.full((50, 50, 4), FREE_ID, dtype=np.uint8)
     occ[0, 0, 0] = 4  # car at the grid's corner
