@@ -19,6 +19,7 @@ from renderworld.pipeline.report import (
 )
 from renderworld.training.figures import bev_image
 from renderworld.training.schedule import read_schedule
+from renderworld.viewer import report_section
 
 __all__ = ["main_job_report", "schedule_cell"]
 
@@ -46,6 +47,7 @@ def main_job_report(cfg: Any, out: Path, results: list, seconds: float) -> Path:
     sections += _tokenizer_section(out)
     sections += _img2occ_section(out)
     sections += _world_model_section(out)
+    sections.append(("3-D recording (Rerun)", report_section(out)))
     figures = _pictures(cfg, out)
     if figures:
         sections.append(("Pictures", "\n\n".join(figures)))

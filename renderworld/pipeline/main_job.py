@@ -149,6 +149,7 @@ def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
     steps = _data_steps(cfg, p) + _occupancy_steps(p)
     if (repo / "configs" / "stage" / "world_model.yaml").is_file():
         steps += _world_model_steps(p)
+    steps += _viewer_steps(p, {s.name for s in steps})
     return steps
 
 
@@ -273,6 +274,27 @@ def _world_model_steps(p: _Paths) -> list[Step]:
         )
     )
     return steps
+
+
+def _viewer_steps(p: _Paths, names: set[str]) -> list[Step]:
+    """One mini_val scene as a Rerun recording with the job's checkpoints (``tools/view.py``);
+    none without rerun-sdk (the report then says how to install it)."""
+    from renderworld.viewer import rerun_available, view_command
+    from renderworld.viewer.job import JOB_RECORDING
+
+    if not rerun_available():
+        return []
+    readers = ("infos", "img2occ", "tokenizer", "world_model")
+    return [
+        Step(
+            "viewer",
+            "write a 3-D Rerun recording of one mini_val scene (data, Gaussians, forecasts)",
+            view_command(sys.executable, p.out, p.data, SIM_VERSION),
+            p.out / Path(JOB_RECORDING).parent,
+            depends_on=tuple(n for n in readers if n in names),
+            inputs=(*p.code("viewer"), p.repo / "configs" / "view.yaml"),
+        )
+    ]
 
 
 def run_main_job(cfg: Any, repo: Path) -> Path:
