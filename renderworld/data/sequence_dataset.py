@@ -46,6 +46,8 @@ class OccSequenceDataset(InfosDataset):
         mask_camera: bool [T,X,Y,Z].
         ego_displacements: float32 [T-1,2], ``p[i+1] - p[i]`` with ``p`` the frames' positions
             in the last history frame's ego frame (metres; VAD convention, as PlanRequest).
+        history_poses: float32 [H,3], (x, y, yaw) of the history frames in the last history
+            frame's ego frame (metres, radians; the last row is zeros).
         future_traj: float32 [F,2], positions of the future frames in that frame (metres).
         future_mask: bool [F].
         command: int64, index into COMMANDS, of the last history frame.
@@ -136,7 +138,10 @@ class OccSequenceDataset(InfosDataset):
         # Positions of every frame in the current (last history) ego frame; displacements are
         # their per-step differences (VAD convention, as renderworld.planning.PlanRequest), so
         # the future trajectory is exactly the cumulative sum of the future displacements.
-        pos = (invert_pose(poses[self.history - 1]) @ poses)[:, :2, 3]
+        rel = invert_pose(poses[self.history - 1]) @ poses
+        pos = rel[:, :2, 3]
+        yaw = np.arctan2(rel[: self.history, 1, 0], rel[: self.history, 0, 0])
+        hist_poses = np.column_stack([pos[: self.history], yaw])
         disp = np.diff(pos, axis=0)
         traj = pos[self.history :]
         m = self.max_boxes
@@ -151,6 +156,7 @@ class OccSequenceDataset(InfosDataset):
             "occ": torch.from_numpy(np.stack(occ)),
             "mask_camera": torch.from_numpy(np.stack(mask_cam)),
             "ego_displacements": torch.from_numpy(disp.astype(np.float32)),
+            "history_poses": torch.from_numpy(hist_poses.astype(np.float32)),
             "future_traj": torch.from_numpy(traj.reshape(self.future, 2).astype(np.float32)),
             "future_mask": torch.ones(self.future, dtype=torch.bool),
             "command": torch.tensor(COMMANDS.index(self.text["command"][last])),

@@ -56,9 +56,11 @@ from renderworld.training.stages.world_model_settings import (
 from renderworld.world import (
     WorldModel,
     WorldModelConfig,
+    constant_turn_rate_poses,
     constant_velocity_trajectory,
     copy_paste_forecast,
     teacher_forcing_split,
+    warp_along_poses,
     warp_constant_velocity_forecast,
     world_model_loss,
 )
@@ -334,16 +336,28 @@ class WorldModelStage(Stage):
                 tok.decode(Tokens(ro.tokens[:, k], tok.cfg.codebook_sizes, names)) for k in range(f)
             ]
         current = occ[:, h - 1]
+        ctr = constant_turn_rate_poses(batch["history_poses"].double(), f)
         forecasts = {
             "model": torch.stack(frames, dim=1),
             "copy_paste": copy_paste_forecast(current, f),
             "warp_cv": warp_constant_velocity_forecast(current, disp[:, h - 2], f, self.grid),
+            "warp_ctr": warp_along_poses(current, ctr, self.grid),
         }
         trajs = {
             "model": ro.trajectory,
             "cv_traj": constant_velocity_trajectory(disp[:, : h - 1], f),
+            "ctr_traj": ctr[..., :2].to(disp.dtype),
         }
         return forecasts, trajs
+
+    def references(self, batch: dict, setting: EvalSetting) -> dict[str, torch.Tensor]:
+        """Forecasts that read the future (reported as references, never as methods).
+
+        ``warp_gt_pose``: the setting's current frame warped along the ground-truth future
+        poses ``future_poses`` (an upper bound for a static world).
+        """
+        current = batch[setting.inputs][:, self.settings.history - 1]
+        return {"warp_gt_pose": warp_along_poses(current, batch["future_poses"], self.grid)}
 
     def setting_model(self, model: nn.Module, setting: EvalSetting) -> nn.Module:
         """The model a setting is scored with: its own checkpoint's, else ``model``."""
@@ -367,6 +381,11 @@ class WorldModelStage(Stage):
             stats.update(wme.empty_forecast_stats(f, device, s.prefix))
             for p in wme.PLANNERS:
                 plan[f"{s.prefix}{p}"] = PlanningMetric(f, hs, occupancy_grid=self.grid)
+                for split in wme.SPLITS:
+                    for name, shape in (("l2_sum", (f,)), ("l2_count", (f,)), ("windows", ())):
+                        stats[f"{s.prefix}{p}/{split}/{name}"] = torch.zeros(
+                            shape, dtype=torch.float64, device=device
+                        )
         sums: dict[str, list[torch.Tensor]] = {"loss": [], "token_ce": [], "l2": []}
         first = self.eval_settings[0]
         for batch in loader:
@@ -382,13 +401,18 @@ class WorldModelStage(Stage):
             valid = batch["future_mask"].bool()
             target = batch.get("occ_target", occ)[:, h:]
             target_mask = batch.get("mask_camera_target", batch["mask_camera"])[:, h:]
+            turning = wme.turning_windows(batch["future_poses"], valid)
             for s in self.eval_settings:
                 forecasts, trajs = self.forecast(
                     self.setting_model(raw, s), batch, s, tokens if s is first else None
                 )
-                wme.add_forecast_stats(stats, forecasts, target, target_mask, valid, s.prefix)
+                forecasts.update(self.references(batch, s))
+                wme.add_forecast_stats(
+                    stats, forecasts, target, target_mask, valid, s.prefix, turning
+                )
                 mine = {p: plan[f"{s.prefix}{p}"] for p in wme.PLANNERS}
                 wme.update_planning(mine, trajs, batch, target, valid)
+                wme.add_split_l2(stats, trajs, batch["future_traj"], valid, turning, s.prefix)
         for k, vals in sums.items():
             stats.update(sum_count(k, torch.cat(vals) if vals else torch.zeros(0)))
         for key, metric in plan.items():
@@ -411,7 +435,24 @@ class WorldModelStage(Stage):
                     full = wme.forecast_from_stats(stats, f"{p}/full", hs)
                     cam = wme.forecast_from_stats(stats, f"{p}/cam", hs, "camera")
                     out.update({f"{p}/{k}": v for k, v in full.items()})
-                    out.update({f"{p}/cam/{k}": v for k, v in cam.items() if "step" not in k})
+                    out.update(
+                        {
+                            f"{p}/cam/{k}": v
+                            for k, v in cam.items()
+                            if "step" not in k and "class" not in k
+                        }
+                    )
+                for split in wme.SPLITS:
+                    if has_occ:
+                        res = wme.forecast_from_stats(stats, f"{p}/{split}", hs)
+                        out.update({f"{p}/{split}/{k}": v for k, v in res.items()
+                                    if "step" not in k and "class_iou" not in k})  # fmt: skip
+                    if has_traj:
+                        res = wme.split_l2_from_stats(stats, f"{p}/{split}", hs)
+                        out.update({f"{p}/{split}/{k}": v for k, v in res.items()})
+                    elif has_occ:
+                        n = wme.split_l2_from_stats(stats, f"{s.prefix}model/{split}", hs)
+                        out[f"{p}/{split}/num_windows"] = n["num_windows"]
                 if has_traj:
                     res = wme.planning_from_stats(stats, f"{p}/plan", hs, self.grid)
                     out.update({f"{p}/{k}": v for k, v in res.items()})
