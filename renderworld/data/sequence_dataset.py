@@ -11,6 +11,7 @@ import torch
 from renderworld.constants import COMMANDS, FUTURE_FRAMES, HISTORY_FRAMES, GridSpec
 from renderworld.data.dataset_base import InfosDataset
 from renderworld.data.errors import DatasetError
+from renderworld.data.frame_cache import FrameCache
 from renderworld.data.infos import BOX_FIELDS
 from renderworld.geometry import invert_pose
 
@@ -40,6 +41,9 @@ class OccSequenceDataset(InfosDataset):
             with more keep the M nearest to the ego.
         cache_frames: keyframes whose grid-sampled occupancy is kept in memory (least recently
             used dropped); overlapping windows then load each file about once.
+        frame_cache: None, or a folder where each file's grid-sampled occupancy and camera mask
+            are kept across runs (:class:`renderworld.data.frame_cache.FrameCache`; keyed by
+            the file's path, size, mtime and hash, the grid and the code version).
 
     Item (dict):
         occ: uint8 [T,X,Y,Z], each frame in its own ego frame.
@@ -66,8 +70,10 @@ class OccSequenceDataset(InfosDataset):
         occ_root=None,
         max_boxes: int | None = None,
         cache_frames: int = 32,
+        frame_cache=None,
     ):
         super().__init__(infos, data_root, grid)
+        self.frame_cache = None if frame_cache is None else FrameCache(frame_cache)
         if not isinstance(cache_frames, int) or cache_frames < 0:
             raise ValueError(f"cache_frames: expected an integer >= 0, got {cache_frames!r}")
         self.cache_frames = cache_frames
@@ -120,7 +126,11 @@ class OccSequenceDataset(InfosDataset):
         if row in self._cache:
             self._cache.move_to_end(row)
             return self._cache[row]
-        occ, mask_cam, _ = self._occ(self._occ_path(row))
+        path = self._occ_path(row)
+        if self.frame_cache is not None and path.is_file():
+            occ, mask_cam = self.frame_cache.get(path, self.grid, lambda p: self._occ(p)[:2])
+        else:
+            occ, mask_cam, _ = self._occ(path)
         if self.cache_frames:
             self._cache[row] = (occ, mask_cam)
             if len(self._cache) > self.cache_frames:

@@ -73,6 +73,22 @@ __all__ = [
 ]
 
 
+def frame_cache_dir(cfg: Any) -> Path | None:
+    """Folder of the on-disk frame cache of ``stage.frame_cache``.
+
+    ``true``: ``<dataset.data_root>/renderworld_cache/frames``; a string: that folder;
+    ``false`` / null: no cache.
+    """
+    value = cfg.stage.get("frame_cache")
+    if value is None or value is False:
+        return None
+    if value is True:
+        return Path(str(cfg.dataset.data_root)) / "renderworld_cache" / "frames"
+    if isinstance(value, str) and value:
+        return Path(value)
+    raise ValueError(f"stage.frame_cache: expected true, false, null or a folder, got {value!r}")
+
+
 _ENCODE_CHUNK = 16  # frames per tokenizer call (bounds memory on the Occ3D grid)
 
 
@@ -275,10 +291,12 @@ class WorldModelStage(Stage):
         folder = infos_dir(cfg)
         root, st = str(cfg.dataset.data_root), self.settings
 
+        cache = frame_cache_dir(cfg)
+
         def windows(split: str, occ_root, gt_targets: bool) -> wme.WorldModelWindows:
             infos = load_infos(folder, split)
             return wme.WorldModelWindows(
-                infos, root, self.grid, st.history, st.future, occ_root, gt_targets
+                infos, root, self.grid, st.history, st.future, occ_root, gt_targets, cache
             )
 
         # Camera setting: train on pseudo labels; validate pseudo-label inputs against GT (with

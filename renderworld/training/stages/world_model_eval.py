@@ -97,6 +97,8 @@ def turning_windows(future_poses: torch.Tensor, valid: torch.Tensor) -> torch.Te
 class WorldModelWindows(Dataset):
     """``OccSequenceDataset`` windows plus ``future_poses`` float32 [F, 3].
 
+    ``frame_cache``: folder of the on-disk frame cache (see ``OccSequenceDataset``) or None.
+
     With ``occ_root`` (pseudo labels) and ``gt_targets``, items also carry the dataset's GT
     ``occ_target`` uint8 [T,X,Y,Z] and ``mask_camera_target`` bool [T,X,Y,Z] of the same window,
     which evaluation scores against (the "Camera" setting).
@@ -106,17 +108,29 @@ class WorldModelWindows(Dataset):
     collision-vs-occupancy metric.
     """
 
-    def __init__(self, infos, data_root, grid, history, future, occ_root=None, gt_targets=False):
+    def __init__(
+        self,
+        infos,
+        data_root,
+        grid,
+        history,
+        future,
+        occ_root=None,
+        gt_targets=False,
+        frame_cache=None,
+    ):
         self.seq = OccSequenceDataset(
-            infos, data_root, history=history, future=future, grid=grid, occ_root=occ_root
-        )
+            infos, data_root, history=history, future=future, grid=grid, occ_root=occ_root,
+            frame_cache=frame_cache,
+        )  # fmt: skip
         # Camera setting: inputs are pseudo labels (occ_root) but forecasts are scored against
         # the dataset's GT; the GT windows are the same windows (same infos, history, future).
         self.gt = None
         if occ_root is not None and gt_targets:
             self.gt = OccSequenceDataset(
-                infos, data_root, history=history, future=future, grid=grid, occ_root=None
-            )
+                infos, data_root, history=history, future=future, grid=grid, occ_root=None,
+                frame_cache=frame_cache,
+            )  # fmt: skip
 
     def __len__(self) -> int:
         return len(self.seq)
