@@ -42,6 +42,7 @@ from renderworld.tokenizer import SceneTokenizer, Tokens
 from renderworld.training.checkpoint import CheckpointError, load_checkpoint
 from renderworld.training.registry import Stage, register_stage, sum_count
 from renderworld.training.stages import world_model_eval as wme
+from renderworld.training.stages import world_model_pose as wmp
 from renderworld.training.stages.common import grid_of, infos_dir
 from renderworld.training.stages.tokenizer import load_tokenizer
 from renderworld.training.stages.world_model_bundle import TOKENIZER_KIND, export_planner_bundle
@@ -64,6 +65,7 @@ from renderworld.world import (
     warp_constant_velocity_forecast,
     world_model_loss,
 )
+from renderworld.world.pose import PoseWarpWorldModel
 
 __all__ = [
     "WorldModelStage",
@@ -71,6 +73,22 @@ __all__ = [
     "export_planner_bundle",
     "TOKENIZER_KIND",
 ]
+
+
+FORECASTERS = ("tokens", "pose_warp")
+
+
+def forecaster_of(cfg: Any) -> str:
+    """``stage.forecaster`` of a run config (absent: ``"tokens"``, the original world model)."""
+    kind = cfg.stage.get("forecaster") or "tokens"
+    if kind not in FORECASTERS:
+        raise ValueError(f"stage.forecaster: expected one of {FORECASTERS}, got {kind!r}")
+    return str(kind)
+
+
+def build_world_model(kind: str, config: WorldModelConfig) -> nn.Module:
+    """:class:`WorldModel` (``"tokens"``) or :class:`PoseWarpWorldModel` (``"pose_warp"``)."""
+    return PoseWarpWorldModel(config) if kind == "pose_warp" else WorldModel(config)
 
 
 def frame_cache_dir(cfg: Any) -> Path | None:
@@ -106,6 +124,9 @@ class WorldModelStage(Stage):
         super().__init__(cfg)
         self.settings = stage_settings(cfg)
         self.grid = grid_of(cfg)
+        #: "tokens" (WorldModel: autoregressive codes) or "pose_warp" (PoseWarpWorldModel); when
+        #: evaluating a checkpoint, its own.
+        self.forecaster = forecaster_of(cfg)
         self.horizons = wme.horizons_for(self.settings.future)
         #: Frozen tokenizers by checkpoint path (``stage.tokenizer_ckpt``, and a setting's own).
         self._tokenizers: dict[str, SceneTokenizer] = {}
@@ -115,6 +136,12 @@ class WorldModelStage(Stage):
         #: Models of settings evaluated with their own checkpoint (``camera_ckpt``), by key.
         self.setting_models: dict[str, nn.Module] = {}
         self._val_set: Dataset | None = None
+
+    @property
+    def forecasters(self) -> tuple[str, ...]:
+        """Forecast rows of this evaluation: the model (and its variants) and the baselines."""
+        extra = wmp.POSE_METHODS if self.forecaster == "pose_warp" else ()
+        return tuple(m for m in wme.FORECASTERS if m not in wmp.POSE_METHODS or m in extra)
 
     # ------------------------------------------------------------------ tokenizer
     @property
@@ -211,7 +238,9 @@ class WorldModelStage(Stage):
         mine = world_model_config(cfg, self.tokenizer.cfg)
         ckpt = cfg.get("ckpt") if cfg.get("task") == "eval" else None
         if not ckpt or not Path(str(ckpt)).is_file():
-            return WorldModel(mine)
+            return build_world_model(self.forecaster, mine)
+        stored = load_checkpoint(ckpt, expected_stage="world_model")["config"]
+        self.forecaster = forecaster_of(OmegaConf.create(stored))
         model = self._model_of_checkpoint(ckpt, mine, "ckpt")
         for s in self.eval_settings:
             if s.ckpt:  # the Camera setting's own model (camera_ckpt), loaded strictly
@@ -284,7 +313,13 @@ class WorldModelStage(Stage):
                 UserWarning,
                 stacklevel=2,
             )
-        return WorldModel(theirs)
+        kind = forecaster_of(stored)
+        if kind != self.forecaster:
+            raise ValueError(
+                f"{what}: {str(ckpt)!r} is a stage.forecaster={kind!r} model, the evaluated "
+                f"model is {self.forecaster!r}; both settings need the same forecaster"
+            )
+        return build_world_model(kind, theirs)
 
     def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
         _ = self.tokenizer  # a wrong stage.tokenizer_ckpt fails before any data is read
@@ -317,8 +352,11 @@ class WorldModelStage(Stage):
 
     def loss(self, model: nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, Any]]:
         device = batch["ego_displacements"].device
-        tokens = self.window_tokens(batch, batch["occ"].shape[1], device)
-        terms = self._teacher_forced(model, batch, tokens)
+        if self.forecaster == "pose_warp":
+            terms = wmp.pose_teacher_forced(self, model, batch)
+        else:
+            tokens = self.window_tokens(batch, batch["occ"].shape[1], device)
+            terms = self._teacher_forced(model, batch, tokens)
         logs = {k: v.detach() for k, v in terms.items() if k != "loss"}
         return terms["loss"], logs
 
@@ -342,6 +380,20 @@ class WorldModelStage(Stage):
         h, f = st.history, st.future
         occ, disp = batch[setting.inputs], batch["ego_displacements"].float()
         device = disp.device
+        current = occ[:, h - 1]
+        ctr = constant_turn_rate_poses(batch["history_poses"].double(), f)
+        baselines = {
+            "copy_paste": copy_paste_forecast(current, f),
+            "warp_cv": warp_constant_velocity_forecast(current, disp[:, h - 2], f, self.grid),
+            "warp_ctr": warp_along_poses(current, ctr, self.grid),
+        }
+        plans = {
+            "cv_traj": constant_velocity_trajectory(disp[:, : h - 1], f),
+            "ctr_traj": ctr[..., :2].to(disp.dtype),
+        }
+        if self.forecaster == "pose_warp":
+            forecasts, traj = wmp.pose_forecast(self, model, batch, setting)
+            return {**forecasts, **baselines}, {"model": traj.to(disp.dtype), **plans}
         if tokens is None:
             tokens = self.window_tokens(
                 batch, h, device, setting.inputs, setting.source, setting.tokenizer
@@ -353,20 +405,8 @@ class WorldModelStage(Stage):
             frames = [
                 tok.decode(Tokens(ro.tokens[:, k], tok.cfg.codebook_sizes, names)) for k in range(f)
             ]
-        current = occ[:, h - 1]
-        ctr = constant_turn_rate_poses(batch["history_poses"].double(), f)
-        forecasts = {
-            "model": torch.stack(frames, dim=1),
-            "copy_paste": copy_paste_forecast(current, f),
-            "warp_cv": warp_constant_velocity_forecast(current, disp[:, h - 2], f, self.grid),
-            "warp_ctr": warp_along_poses(current, ctr, self.grid),
-        }
-        trajs = {
-            "model": ro.trajectory,
-            "cv_traj": constant_velocity_trajectory(disp[:, : h - 1], f),
-            "ctr_traj": ctr[..., :2].to(disp.dtype),
-        }
-        return forecasts, trajs
+        forecasts = {"model": torch.stack(frames, dim=1), **baselines}
+        return forecasts, {"model": ro.trajectory, **plans}
 
     def references(self, batch: dict, setting: EvalSetting) -> dict[str, torch.Tensor]:
         """Forecasts that read the future (reported as references, never as methods).
@@ -396,7 +436,7 @@ class WorldModelStage(Stage):
         stats: dict[str, torch.Tensor] = {}
         plan: dict[str, PlanningMetric] = {}
         for s in self.eval_settings:
-            stats.update(wme.empty_forecast_stats(f, device, s.prefix))
+            stats.update(wme.empty_forecast_stats(f, device, s.prefix, self.forecasters))
             for p in wme.PLANNERS:
                 plan[f"{s.prefix}{p}"] = PlanningMetric(f, hs, occupancy_grid=self.grid)
                 for split in wme.SPLITS:
@@ -413,7 +453,13 @@ class WorldModelStage(Stage):
             tokens = self.window_tokens(
                 batch, occ.shape[1], device, first.inputs, first.source, first.tokenizer
             )
-            terms = self._teacher_forced(self.setting_model(raw, first), batch, tokens)
+            if self.forecaster == "pose_warp":
+                terms = wmp.pose_teacher_forced(
+                    self, self.setting_model(raw, first), batch, first.inputs, first.source,
+                    first.tokenizer,
+                )  # fmt: skip
+            else:
+                terms = self._teacher_forced(self.setting_model(raw, first), batch, tokens)
             for k in sums:
                 sums[k].append(terms[k].detach().double().cpu().expand(occ.shape[0]))
             valid = batch["future_mask"].bool()
@@ -449,6 +495,8 @@ class WorldModelStage(Stage):
         for s in self.eval_settings:
             for m, _, has_occ, has_traj in wme.METHODS:
                 p = f"{s.prefix}{m}"
+                if has_occ and f"{p}/full/confusion" not in stats:
+                    continue  # a variant of another forecaster
                 if has_occ:
                     full = wme.forecast_from_stats(stats, f"{p}/full", hs)
                     cam = wme.forecast_from_stats(stats, f"{p}/cam", hs, "camera")

@@ -212,15 +212,15 @@ def forecast_to_stats(
 
 
 def empty_forecast_stats(
-    steps: int, device: torch.device, prefix: str = ""
+    steps: int, device: torch.device, prefix: str = "", methods: tuple[str, ...] | None = None
 ) -> dict[str, torch.Tensor]:
     """Zero ``<prefix><method>/<region>/confusion`` [S, 18, 18] and ``.../skipped`` [].
 
     Regions: ``full``, ``cam`` (camera mask) and the full volume of the ``straight`` /
-    ``turning`` windows.
+    ``turning`` windows. ``methods``: the forecasters evaluated (default all of ``METHODS``).
     """
     out = {}
-    for p in FORECASTERS:
+    for p in FORECASTERS if methods is None else methods:
         for region in ("full", "cam", *SPLITS):
             out[f"{prefix}{p}/{region}/confusion"] = torch.zeros(
                 steps, NUM_OCC3D_CLASSES, NUM_OCC3D_CLASSES, dtype=torch.float64, device=device

@@ -39,6 +39,8 @@ __all__ = [
 #: (metric prefix, table label, has an occupancy forecast, has a trajectory)
 METHODS: tuple[tuple[str, str, bool, bool], ...] = (
     ("model", "model", True, True),
+    ("model_warp", "model, warp only", True, False),
+    ("model_net", "model, tokens only", True, False),
     ("copy_paste", "Copy&Paste", True, False),
     ("warp_cv", "CV-warp", True, False),
     ("warp_ctr", "CTR-warp", True, False),
@@ -65,6 +67,11 @@ _LEGEND_BASELINES = (
     "rate (last displacement and last heading change repeated); both read the history only. "
     "GT-pose warp (ref.) = the current frame warped along the ground-truth future poses "
     "(x, y, yaw): it reads the future, an upper bound for a static world, not a method."
+)
+_LEGEND_VARIANTS = (
+    "model, warp only = the current frame warped along the model's predicted poses; model, "
+    "tokens only = the token network's decoded forecast; model = the warp where its source "
+    "lies on the current grid, the tokens elsewhere."
 )
 _LEGEND_NAN = (
     "nan: undefined — no class present in GT or forecast at that horizon, or no window with a "
@@ -178,6 +185,8 @@ def report_tables(
             rows.append((label, name, vals, [_value(metrics, key, c[1], c[2]) for c in csv_cols]))
     shown = [v for r in rows for v in r[2]]
     legend = [_LEGEND_BASELINES]
+    if any(r[1] == "model, warp only" for r in rows):
+        legend.append(_LEGEND_VARIANTS)
     if any(v is None for v in shown):
         legend.append(_LEGEND_NA)
     if any(v is not None and math.isnan(v) for v in shown):
