@@ -1,0 +1,90 @@
+"""The world_model stage with stage.forecaster=pose_warp: leak-free forecasts, train and eval."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from renderworld.training import evaluate, train
+from renderworld.training.stages.world_model import WorldModelStage
+from renderworld.world.pose import PoseWarpWorldModel
+
+from . import test_world_model_stage as base
+from .conftest import compose_cfg
+
+HISTORY, FUTURE = base.HISTORY, base.FUTURE
+# The stage tests' module fixtures: the tiny fixture, its tiny tokenizer and the overrides.
+converted, tokenizer_ckpt, wm_overrides = base.converted, base.tokenizer_ckpt, base.wm_overrides
+
+POSE = ["stage.forecaster=pose_warp"]
+
+
+def _stage(wm_overrides, tmp_path):
+    cfg = compose_cfg([*wm_overrides, *POSE, f"run_dir={tmp_path}"])
+    stage = WorldModelStage(cfg)
+    _, val_set = stage.build_datasets(cfg)
+    model = stage.build_model(cfg).eval()
+    assert isinstance(model, PoseWarpWorldModel)
+    with torch.no_grad():  # a pose head that is not constant turn rate, a busy token net
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return stage, model, val_set
+
+
+def test_changing_the_future_ground_truth_leaves_the_forecast_unchanged(wm_overrides, tmp_path):
+    stage, model, val_set = _stage(wm_overrides, tmp_path)
+    batch = next(iter(DataLoader(val_set, batch_size=2)))
+    setting = stage.eval_settings[0]
+    fc, traj = stage.forecast(model, batch, setting, None)
+    h = HISTORY
+    g = torch.Generator().manual_seed(0)
+    other = copy.deepcopy(batch)
+    other["occ"][:, h:] = torch.randint(0, 18, other["occ"][:, h:].shape, generator=g).to(
+        torch.uint8
+    )
+    other["mask_camera"][:, h:] = ~other["mask_camera"][:, h:]
+    for key in ("future_poses", "future_traj", "future_boxes"):
+        other[key] = torch.randn(other[key].shape, generator=g) * 10
+    other["ego_displacements"][:, h - 1 :] = torch.randn(2, FUTURE, 2, generator=g) * 5
+    other["future_boxes_mask"] = ~other["future_boxes_mask"]
+    fc2, traj2 = stage.forecast(model, other, setting, None)
+    for k in ("model", "model_warp", "model_net", "copy_paste", "warp_cv", "warp_ctr"):
+        assert torch.equal(fc[k], fc2[k]), k
+    for k in ("model", "cv_traj", "ctr_traj"):
+        assert torch.equal(traj[k], traj2[k]), k
+    # The history does drive it (the test above could not pass by ignoring every input).
+    moved = copy.deepcopy(batch)
+    moved["history_poses"][:, :-1, 2] += 0.3
+    fc3, traj3 = stage.forecast(model, moved, setting, None)
+    assert not torch.equal(traj3["model"], traj["model"])
+    assert not torch.equal(fc3["model_warp"], fc["model_warp"])
+
+
+def test_forecast_takes_the_warp_on_the_grid_and_the_tokens_elsewhere(wm_overrides, tmp_path):
+    stage, model, val_set = _stage(wm_overrides, tmp_path)
+    batch = next(iter(DataLoader(val_set, batch_size=2)))
+    fc, _ = stage.forecast(model, batch, stage.eval_settings[0], None)
+    same_as_warp = fc["model"] == fc["model_warp"]
+    same_as_net = fc["model"] == fc["model_net"]
+    assert (same_as_warp | same_as_net).all()
+    assert fc["model"].shape == (2, FUTURE, *stage.grid.shape)
+
+
+def test_trains_evaluates_and_reloads_its_kind(wm_overrides, tmp_path):
+    run = tmp_path / "run"
+    metrics = train(compose_cfg([*wm_overrides, *POSE, f"run_dir={run}", "trainer.max_steps=3",
+                                 "trainer.val_every=3", "trainer.monitor=val/model/miou_avg",
+                                 "trainer.monitor_mode=max"]))  # fmt: skip
+    for key in ("val/model/miou_1s", "val/model_warp/miou_1s", "val/model_net/iou_2s",
+                "val/model/l2_at_horizon_2s", "val/l2"):  # fmt: skip
+        assert math.isfinite(metrics[key]), key
+    # Eval without stage.forecaster: the checkpoint's kind is used.
+    m = evaluate(compose_cfg([*wm_overrides, f"ckpt={run / 'checkpoints' / 'last.pt'}",
+                              f"run_dir={tmp_path / 'eval'}"], "eval"))  # fmt: skip
+    assert m["val/model_warp/miou_1s"] == pytest.approx(metrics["val/model_warp/miou_1s"])
+    rows = (tmp_path / "eval" / "world_model_eval.md").read_text()
+    assert "| 3D-Occ | model, warp only |" in rows and "| 3D-Occ | model, tokens only |" in rows
