@@ -150,3 +150,20 @@ def test_baselines_reference_splits_and_classes_in_the_table():
     assert "| 3D-Occ | GT-pose warp (ref.) | 45.00 |" in md
     assert "reads the future, an upper bound for a static world, not a method" in md
     assert "GT-pose warp (ref.)" in text
+
+
+def test_the_forecast_picture_shows_a_turning_window():
+    import math
+
+    import torch
+
+    from renderworld.training.stages.world_model_pictures import turning_window
+
+    def item(yaw_deg: float) -> dict:
+        poses = torch.zeros(6, 3)
+        poses[:, 2] = torch.linspace(0, math.radians(yaw_deg), 6)
+        return {"future_poses": poses, "future_mask": torch.ones(6, dtype=torch.bool)}
+
+    windows = [item(30), item(0), item(0), item(2), item(0), item(-40), item(0)]
+    assert turning_window(windows) == 5  # nearest the middle (3) of those turning > 5 deg
+    assert turning_window([item(0)] * 4) == 2  # none turns: the middle

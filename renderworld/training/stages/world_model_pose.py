@@ -21,12 +21,20 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from renderworld.constants import COMMANDS
 from renderworld.tokenizer import Tokens
 from renderworld.training.stages import world_model_eval as wme
 from renderworld.world import warp_along_poses
 from renderworld.world.pose import align_history, pose_loss
 
-__all__ = ["POSE_METHODS", "encode_frames", "pose_forecast", "pose_teacher_forced"]
+__all__ = [
+    "POSE_METHODS",
+    "encode_frames",
+    "mirror_command",
+    "mirror_poses",
+    "pose_forecast",
+    "pose_teacher_forced",
+]
 
 #: Forecast rows of the pose-warp model beside ``model`` (variants the note compares).
 POSE_METHODS = ("model_warp", "model_net")
@@ -62,6 +70,19 @@ def encode_frames(
                 cache[keys[i]] = code
     out = [fresh[i] if i in fresh else cache[k] for i, k in enumerate(keys)]
     return torch.stack(out).to(device).long()
+
+
+def mirror_poses(poses: torch.Tensor) -> torch.Tensor:
+    """Poses [..., 3] of the scene mirrored about the ego's x axis: (x, -y, -yaw)."""
+    return poses * poses.new_tensor([1.0, -1.0, -1.0])
+
+
+def mirror_command(command: torch.Tensor) -> torch.Tensor:
+    """Command indices [B] with left and right swapped."""
+    left, right = COMMANDS.index("left"), COMMANDS.index("right")
+    out = command.clone()
+    out[command == left], out[command == right] = right, left
+    return out
 
 
 def _aligned_history_codes(stage, batch, occ_key, source, tokenizer, device) -> torch.Tensor:
@@ -108,8 +129,15 @@ def pose_teacher_forced(
     hist_poses, fut_poses = batch["history_poses"].float(), batch["future_poses"].float()
     valid = batch["future_mask"].bool()
     current = occ[:, h - 1]
+    yaw_w = float(stage.cfg.stage.get("pose_yaw_weight", 5.0))
     pred, _ = model.predict_poses(hist_poses, cmd, current)
-    pl = pose_loss(pred, fut_poses, valid)
+    pl = pose_loss(pred, fut_poses, valid, yaw_weight=yaw_w)
+    if model.training and stage.cfg.stage.get("pose_mirror", False):
+        # The mirrored scene (y -> -y, left <-> right) is as plausible: twice the pose data.
+        m_pred, _ = model.predict_poses(mirror_poses(hist_poses), mirror_command(cmd),
+                                        current.flip(2))  # fmt: skip
+        m = pose_loss(m_pred, mirror_poses(fut_poses), valid, yaw_weight=yaw_w)
+        pl = {k: 0.5 * (pl[k] + m[k]) for k in pl}
 
     b = occ.shape[0]
     toks = wme.frame_keys(batch, b, occ.shape[1])
