@@ -88,3 +88,24 @@ def test_trains_evaluates_and_reloads_its_kind(wm_overrides, tmp_path):
     assert m["val/model_warp/miou_1s"] == pytest.approx(metrics["val/model_warp/miou_1s"])
     rows = (tmp_path / "eval" / "world_model_eval.md").read_text()
     assert "| 3D-Occ | model, warp only |" in rows and "| 3D-Occ | model, tokens only |" in rows
+
+
+def test_extra_train_roots_add_their_train_windows(wm_overrides, converted, tmp_path):
+    root, infos = converted
+    extra = tmp_path / "extra"
+    extra.mkdir()
+    for child in root.iterdir():
+        (extra / child.name).symlink_to(child)
+    (extra / "renderworld_infos").mkdir()
+    (extra / "renderworld_infos" / "v1.0-mini").symlink_to(infos)
+    cfg = compose_cfg([*wm_overrides, f"run_dir={tmp_path}"])
+    one, val = WorldModelStage(cfg).build_datasets(cfg)
+    cfg = compose_cfg([*wm_overrides, f"run_dir={tmp_path}", f"stage.extra_train_roots=[{extra}]"])
+    two, val2 = WorldModelStage(cfg).build_datasets(cfg)
+    assert len(two) == 2 * len(one) and len(val2) == len(val)
+    assert torch.equal(two[len(one)]["occ"], one[0]["occ"])
+    bad = compose_cfg(
+        [*wm_overrides, f"run_dir={tmp_path}", f"stage.extra_train_roots=[{tmp_path}]"]
+    )
+    with pytest.raises(ValueError, match="stage.extra_train_roots: .* does not exist"):
+        WorldModelStage(bad).build_datasets(bad)

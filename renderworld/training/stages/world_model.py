@@ -34,7 +34,7 @@ from typing import Any
 import torch
 from omegaconf import OmegaConf
 from torch import nn
-from torch.utils.data import Dataset
+from torch.utils.data import ConcatDataset, Dataset
 
 from renderworld.data import load_infos
 from renderworld.metrics import PlanningMetric
@@ -48,8 +48,12 @@ from renderworld.training.stages.tokenizer import load_tokenizer
 from renderworld.training.stages.world_model_bundle import TOKENIZER_KIND, export_planner_bundle
 from renderworld.training.stages.world_model_settings import (
     EvalSetting,
+    build_world_model,
     check_same_tokenizer,
     eval_settings,
+    extra_train_roots,
+    forecaster_of,
+    frame_cache_dir,
     setting_header,
     stage_settings,
     world_model_config,
@@ -65,7 +69,6 @@ from renderworld.world import (
     warp_constant_velocity_forecast,
     world_model_loss,
 )
-from renderworld.world.pose import PoseWarpWorldModel
 
 __all__ = [
     "WorldModelStage",
@@ -73,38 +76,6 @@ __all__ = [
     "export_planner_bundle",
     "TOKENIZER_KIND",
 ]
-
-
-FORECASTERS = ("tokens", "pose_warp")
-
-
-def forecaster_of(cfg: Any) -> str:
-    """``stage.forecaster`` of a run config (absent: ``"tokens"``, the original world model)."""
-    kind = cfg.stage.get("forecaster") or "tokens"
-    if kind not in FORECASTERS:
-        raise ValueError(f"stage.forecaster: expected one of {FORECASTERS}, got {kind!r}")
-    return str(kind)
-
-
-def build_world_model(kind: str, config: WorldModelConfig) -> nn.Module:
-    """:class:`WorldModel` (``"tokens"``) or :class:`PoseWarpWorldModel` (``"pose_warp"``)."""
-    return PoseWarpWorldModel(config) if kind == "pose_warp" else WorldModel(config)
-
-
-def frame_cache_dir(cfg: Any) -> Path | None:
-    """Folder of the on-disk frame cache of ``stage.frame_cache``.
-
-    ``true``: ``<dataset.data_root>/renderworld_cache/frames``; a string: that folder;
-    ``false`` / null: no cache.
-    """
-    value = cfg.stage.get("frame_cache")
-    if value is None or value is False:
-        return None
-    if value is True:
-        return Path(str(cfg.dataset.data_root)) / "renderworld_cache" / "frames"
-    if isinstance(value, str) and value:
-        return Path(value)
-    raise ValueError(f"stage.frame_cache: expected true, false, null or a folder, got {value!r}")
 
 
 _ENCODE_CHUNK = 16  # frames per tokenizer call (bounds memory on the Occ3D grid)
@@ -337,6 +308,13 @@ class WorldModelStage(Stage):
         # Camera setting: train on pseudo labels; validate pseudo-label inputs against GT (with
         # pseudo_labels=DIR at eval, the same windows give both settings' inputs).
         train = windows(cfg.dataset.train_split, cfg.stage.get("occ_root"), False)
+        extra = [
+            wme.WorldModelWindows(load_infos(infos, cfg.dataset.train_split), extra_root,
+                                  self.grid, st.history, st.future, None, False, cache)
+            for extra_root, infos in extra_train_roots(cfg)
+        ]  # fmt: skip
+        if extra:
+            train = ConcatDataset([train, *extra])
         self._val_set = windows(cfg.dataset.val_split, self._val_occ_root, True)
         return train, self._val_set
 
