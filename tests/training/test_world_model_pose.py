@@ -9,6 +9,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
+from renderworld.constants import FREE_ID
 from renderworld.training import evaluate, train
 from renderworld.training.stages.world_model import WorldModelStage
 from renderworld.world.pose import PoseWarpWorldModel
@@ -70,7 +71,12 @@ def test_forecast_takes_the_warp_on_the_grid_and_the_tokens_elsewhere(wm_overrid
     fc, _ = stage.forecast(model, batch, stage.eval_settings[0], None)
     same_as_warp = fc["model"] == fc["model_warp"]
     same_as_net = fc["model"] == fc["model_net"]
-    assert (same_as_warp | same_as_net).all()
+    assert (same_as_warp | same_as_net | (fc["model"] == FREE_ID)).all()
+    # Classes the current frame does not hold come from neither the warp nor the fill.
+    h = HISTORY
+    for b in range(2):
+        now = set(batch["occ"][b, h - 1].unique().tolist())
+        assert set(fc["model"][b].unique().tolist()) <= now | {FREE_ID}
     assert fc["model"].shape == (2, FUTURE, *stage.grid.shape)
 
 

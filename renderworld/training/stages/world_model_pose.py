@@ -9,8 +9,9 @@ loss.
 Forecast (test time, leak-free): poses from the pose head (history poses, current command,
 current frame); the current frame warped along them (``model, warp only``); the token network
 on the aligned history and those warped frames, decoded (``model, tokens only``); the forecast
-``model`` takes the warp wherever its source lies on the current grid and the decoded tokens
-where it does not (newly revealed space). Only ``history_poses``, the history occupancy and
+``model`` takes the warp wherever its source lies on the current grid and, where it does not
+(newly revealed space), the decoded tokens of the classes the current frame holds (free
+otherwise). Only ``history_poses``, the history occupancy and
 ``command`` of a batch are read.
 """
 
@@ -21,7 +22,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from renderworld.constants import COMMANDS
+from renderworld.constants import COMMANDS, FREE_ID, NUM_OCC3D_CLASSES
 from renderworld.tokenizer import Tokens
 from renderworld.training.stages import world_model_eval as wme
 from renderworld.world import warp_along_poses
@@ -203,7 +204,14 @@ def pose_forecast(
             [tok.decode(Tokens(codes[:, k], tok.cfg.codebook_sizes, tok.cfg.codebook_names))
              for k in range(f)], dim=1,
         ).to(warped.dtype)  # fmt: skip
-    model_fc = torch.where(inside[..., None].bool(), warped, net)
+    # Newly revealed space continues what the current frame shows: decoded classes the current
+    # frame does not hold there are left free (a token decoder's stray classes would each add
+    # a present class at IoU ~0 to the mIoU).
+    seen = torch.zeros(b, NUM_OCC3D_CLASSES, dtype=torch.bool, device=device)
+    seen.scatter_(1, current.flatten(1).long(), True)
+    fill = torch.where(seen.gather(1, net.flatten(1).long()).view(net.shape), net,
+                       torch.full_like(net, FREE_ID))  # fmt: skip
+    model_fc = torch.where(inside[..., None].bool(), warped, fill)
     return {"model": model_fc, "model_warp": warped, "model_net": net}, poses[..., :2]
 
 
