@@ -314,7 +314,11 @@ class WorldModelStage(Stage):
             for extra_root, infos in extra_train_roots(cfg)
         ]  # fmt: skip
         if extra:
-            train = ConcatDataset([train, *extra])
+            parts = [train, *extra]
+            most = max(p.seq.max_boxes for p in parts)
+            for p in parts:  # one box count M for the whole batch (default collate)
+                p.seq.max_boxes = most
+            train = ConcatDataset(parts)
         self._val_set = windows(cfg.dataset.val_split, self._val_occ_root, True)
         return train, self._val_set
 
