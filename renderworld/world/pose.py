@@ -182,12 +182,16 @@ class PoseHead(nn.Module):
 
 
 def pose_loss(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor | None = None,
-              yaw_weight: float = 5.0) -> dict[str, torch.Tensor]:  # fmt: skip
+              yaw_weight: float = 5.0, step_weights: torch.Tensor | None = None,
+              ) -> dict[str, torch.Tensor]:  # fmt: skip
     """Pose error: Euclidean position error (m) + ``yaw_weight`` x |wrapped yaw error| (rad).
 
     Args:
         pred, gt: [B, S, 3] (x, y, yaw).
         valid: [B, S] bool or None.
+        yaw_weight: metres per radian.
+        step_weights: [S] weight of each future step (None: all 1); the mean is over valid
+            steps weighted by them.
 
     Returns:
         ``pose_l2`` (metres, mean over valid steps), ``pose_yaw`` (radians), ``pose``
@@ -198,6 +202,12 @@ def pose_loss(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor | None =
             f"pred/gt: expected equal [B, S, 3], got {tuple(pred.shape)}, {tuple(gt.shape)}"
         )
     w = torch.ones(pred.shape[:2], device=pred.device) if valid is None else valid.float()
+    if step_weights is not None:
+        if tuple(step_weights.shape) != (pred.shape[1],):
+            raise ValueError(
+                f"step_weights: expected [{pred.shape[1]}], got {tuple(step_weights.shape)}"
+            )
+        w = w * step_weights.to(w)
     denom = w.sum().clamp_min(1.0)
     g = gt.to(pred.dtype)
     l2 = torch.sqrt(((pred[..., :2] - g[..., :2]) ** 2).sum(-1) + 1e-12) - 1e-6

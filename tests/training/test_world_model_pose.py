@@ -115,3 +115,13 @@ def test_extra_train_roots_add_their_train_windows(wm_overrides, converted, tmp_
     )
     with pytest.raises(ValueError, match="stage.extra_train_roots: .* does not exist"):
         WorldModelStage(bad).build_datasets(bad)
+
+
+def test_pose_step_weighting_names():
+    from renderworld.training.stages.world_model_pose import pose_step_weights
+
+    assert pose_step_weights("uniform", 6) is None
+    w = pose_step_weights("inverse", 3)
+    torch.testing.assert_close(w, torch.tensor([1.0, 0.5, 1 / 3]) / (11 / 18))
+    with pytest.raises(ValueError, match="stage.pose_step_weighting: expected"):
+        pose_step_weights("log", 3)

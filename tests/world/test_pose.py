@@ -116,3 +116,13 @@ def test_pose_warp_model_scores_the_future_frames_with_a_bonus_on_the_warped_cod
     occ = torch.full((2, *GRID.shape), FREE_ID, dtype=torch.uint8)
     p, _ = model.predict_poses(_history(), cmd, occ)
     assert p.shape == (2, 2, 3) and torch.isfinite(p).all()
+
+
+def test_pose_loss_step_weights():
+    gt = torch.zeros(1, 2, 3)
+    pred = torch.tensor([[[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]]])
+    assert pose_loss(pred, gt)["pose_l2"].item() == pytest.approx(2.0, abs=1e-5)
+    near = pose_loss(pred, gt, step_weights=torch.tensor([3.0, 1.0]))
+    assert near["pose_l2"].item() == pytest.approx((3 * 1 + 1 * 3) / 4, abs=1e-5)
+    with pytest.raises(ValueError, match=r"step_weights: expected \[2\]"):
+        pose_loss(pred, gt, step_weights=torch.ones(3))
