@@ -125,3 +125,17 @@ def test_pose_step_weighting_names():
     torch.testing.assert_close(w, torch.tensor([1.0, 0.5, 1 / 3]) / (11 / 18))
     with pytest.raises(ValueError, match="stage.pose_step_weighting: expected"):
         pose_step_weights("log", 3)
+
+
+def test_both_settings_score_alike_on_pseudo_labels_equal_to_gt(wm_overrides, converted, tmp_path):
+    run = tmp_path / "run"
+    train(compose_cfg([*wm_overrides, *POSE, f"run_dir={run}", "trainer.max_steps=2",
+                       "trainer.val_every=0"]))  # fmt: skip
+    ckpt = run / "checkpoints" / "last.pt"
+    same = base._pseudo_labels(converted, tmp_path / "same", free=False)
+    m = evaluate(compose_cfg([*wm_overrides, f"ckpt={ckpt}", f"run_dir={tmp_path / 'a'}",
+                              f"pseudo_labels={same}", f"camera_ckpt={ckpt}"], "eval"))  # fmt: skip
+    scored = [k for k in m if k.startswith("val/model") and "/" in k[4:]]
+    assert "val/model_warp/miou_1s" in scored and "val/camera/model_net/miou_1s" in m
+    for k in scored:
+        assert m[f"val/camera/{k[4:]}"] == pytest.approx(m[k], rel=1e-9, nan_ok=True), k
