@@ -24,6 +24,7 @@ from renderworld.world.config import WorldModelConfig
 from renderworld.world.model import WorldModel
 
 __all__ = [
+    "ANCHORS",
     "BEV_GROUPS",
     "PoseHead",
     "PoseWarpWorldModel",
@@ -109,12 +110,19 @@ def align_history(
     return out.reshape(occupancy.shape)
 
 
+#: Extrapolations a :class:`PoseHead` predicts residuals on.
+ANCHORS = ("ctr", "ctr_cv")
+
+
 class PoseHead(nn.Module):
     """Future ego poses from the history poses, the command and the current bird's-eye view.
 
-    One mode of S poses per command (the current command selects it), each a residual on the
-    constant-turn-rate extrapolation of the history; the last layer starts at zero, so an
-    untrained head predicts constant turn rate.
+    One mode of S poses per command (the current command selects it), each a residual on an
+    extrapolation of the history: ``anchors="ctr"`` constant turn rate (the last layer starts at
+    zero, so an untrained head predicts constant turn rate); ``"ctr_cv"`` a learned per-step
+    blend of constant turn rate and constant velocity with the heading fixed (half each at
+    initialisation), so that both "the turn goes on" and "the turn has ended" are a saturated
+    weight away instead of a large residual.
 
     Args:
         history: H history frames.
@@ -126,11 +134,21 @@ class PoseHead(nn.Module):
     #: Scale of the raw outputs: metres for x / y, radians for yaw.
     SCALE = (4.0, 4.0, 0.5)
 
-    def __init__(self, history: int, steps: int, bev_in: int = len(BEV_GROUPS), hidden: int = 128):
+    def __init__(
+        self,
+        history: int,
+        steps: int,
+        bev_in: int = len(BEV_GROUPS),
+        hidden: int = 128,
+        anchors: str = "ctr",
+    ):
         super().__init__()
         if history < 2 or steps < 1:
             raise ValueError(f"history/steps: expected >= 2 / >= 1, got {history}/{steps}")
-        self.history, self.steps = history, steps
+        if anchors not in ANCHORS:
+            raise ValueError(f"anchors: expected one of {ANCHORS}, got {anchors!r}")
+        self.history, self.steps, self.anchors = history, steps, anchors
+        n_out = 3 + (1 if anchors == "ctr_cv" else 0)  # (dx, dy, dyaw) [+ CTR-vs-CV logit]
         self.bev = nn.Sequential(
             nn.Conv2d(bev_in, 16, 3, stride=2, padding=1), nn.GELU(),
             nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.GELU(),
@@ -140,7 +158,7 @@ class PoseHead(nn.Module):
         n_in = 4 * history + len(COMMANDS) + hidden
         self.mlp = nn.Sequential(
             nn.Linear(n_in, hidden), nn.GELU(), nn.Linear(hidden, hidden), nn.GELU(),
-            nn.Linear(hidden, len(COMMANDS) * steps * 3),
+            nn.Linear(hidden, len(COMMANDS) * steps * n_out),
         )  # fmt: skip
         nn.init.zeros_(self.mlp[-1].weight)
         nn.init.zeros_(self.mlp[-1].bias)
@@ -174,9 +192,18 @@ class PoseHead(nn.Module):
         ).flatten(1)
         onehot = nn.functional.one_hot(command, len(COMMANDS)).float()
         x = torch.cat([feats, onehot, self.bev(bev.float())], dim=1)
-        raw = self.mlp(x).view(b, len(COMMANDS), self.steps, 3) * self.scale
-        prior = constant_turn_rate_poses(history_poses.detach().double(), self.steps).float()
-        modes = prior[:, None] + raw
+        out = self.mlp(x).view(b, len(COMMANDS), self.steps, -1)
+        raw = out[..., :3] * self.scale
+        hist = history_poses.detach().double()
+        prior = constant_turn_rate_poses(hist, self.steps).float()[:, None]
+        if self.anchors == "ctr_cv":
+            # Constant velocity, heading fixed: CTR with the last heading change set to zero.
+            still = hist.clone()
+            still[:, :, 2] = 0.0
+            cv = constant_turn_rate_poses(still, self.steps).float()[:, None]
+            w = torch.sigmoid(out[..., 3:])  # weight of CTR; 0.5 at initialisation
+            prior = w * prior + (1.0 - w) * cv
+        modes = prior + raw
         idx = command.view(b, 1, 1, 1).expand(b, 1, self.steps, 3)
         return modes.gather(1, idx).squeeze(1), modes
 
@@ -231,15 +258,16 @@ class PoseWarpWorldModel(nn.Module):
         config: the token network's :class:`WorldModelConfig` (``max_frames`` = H + S - 1 is
             exactly this sequence's length).
         copy_bonus: initial logit bonus of the warped code.
+        anchors: the pose head's extrapolations (:data:`ANCHORS`).
     """
 
-    def __init__(self, config: WorldModelConfig, copy_bonus: float = 2.0):
+    def __init__(self, config: WorldModelConfig, copy_bonus: float = 2.0, anchors: str = "ctr"):
         super().__init__()
         if not isinstance(config, WorldModelConfig):
             raise TypeError(f"config: expected WorldModelConfig, got {type(config).__name__}")
         self.config = config
         self.net = WorldModel(config)
-        self.pose = PoseHead(config.history_frames, config.future_frames)
+        self.pose = PoseHead(config.history_frames, config.future_frames, anchors=anchors)
         self.copy_bonus = nn.Parameter(torch.full((config.num_codebooks,), float(copy_bonus)))
 
     def predict_poses(

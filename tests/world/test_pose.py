@@ -126,3 +126,22 @@ def test_pose_loss_step_weights():
     assert near["pose_l2"].item() == pytest.approx((3 * 1 + 1 * 3) / 4, abs=1e-5)
     with pytest.raises(ValueError, match=r"step_weights: expected \[2\]"):
         pose_loss(pred, gt, step_weights=torch.ones(3))
+
+
+def test_pose_head_ctr_cv_anchors_blend_and_saturate():
+    head = PoseHead(history=3, steps=4, anchors="ctr_cv")
+    hist, cmd = _history(), torch.tensor([2, 2])
+    bev = torch.zeros(2, len(BEV_GROUPS), 8, 8)
+    ctr = constant_turn_rate_poses(hist.double(), 4).float()
+    still = hist.clone()
+    still[:, :, 2] = 0
+    cv = constant_turn_rate_poses(still.double(), 4).float()
+    poses, _ = head(hist, cmd, bev)
+    torch.testing.assert_close(poses, 0.5 * ctr + 0.5 * cv)  # half each at initialisation
+    with torch.no_grad():  # the CTR logit of every mode and step far negative: pure CV
+        head.mlp[-1].bias.view(len(COMMANDS), 4, 4)[..., 3] = -50.0
+    poses, _ = head(hist, cmd, bev)
+    torch.testing.assert_close(poses, cv)
+    assert cv[1, :, 2].abs().max() == 0 and ctr[1, :, 2].abs().max() > 0  # they differ
+    with pytest.raises(ValueError, match="anchors: expected one of"):
+        PoseHead(history=3, steps=4, anchors="cv")

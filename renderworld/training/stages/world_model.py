@@ -209,7 +209,7 @@ class WorldModelStage(Stage):
         mine = world_model_config(cfg, self.tokenizer.cfg)
         ckpt = cfg.get("ckpt") if cfg.get("task") == "eval" else None
         if not ckpt or not Path(str(ckpt)).is_file():
-            return build_world_model(self.forecaster, mine)
+            return build_world_model(self.forecaster, mine, cfg)
         stored = load_checkpoint(ckpt, expected_stage="world_model")["config"]
         self.forecaster = forecaster_of(OmegaConf.create(stored))
         model = self._model_of_checkpoint(ckpt, mine, "ckpt")
@@ -290,7 +290,7 @@ class WorldModelStage(Stage):
                 f"{what}: {str(ckpt)!r} is a stage.forecaster={kind!r} model, the evaluated "
                 f"model is {self.forecaster!r}; both settings need the same forecaster"
             )
-        return build_world_model(kind, theirs)
+        return build_world_model(kind, theirs, stored)
 
     def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
         _ = self.tokenizer  # a wrong stage.tokenizer_ckpt fails before any data is read

@@ -28,7 +28,7 @@ from omegaconf import OmegaConf
 
 from renderworld.constants import FUTURE_FRAMES
 from renderworld.world import WorldModel, WorldModelConfig
-from renderworld.world.pose import PoseWarpWorldModel
+from renderworld.world.pose import ANCHORS, PoseWarpWorldModel
 
 __all__ = [
     "EvalSetting",
@@ -236,9 +236,19 @@ def forecaster_of(cfg: Any) -> str:
     return str(kind)
 
 
-def build_world_model(kind: str, config: WorldModelConfig) -> WorldModel | PoseWarpWorldModel:
-    """:class:`WorldModel` (``"tokens"``) or :class:`PoseWarpWorldModel` (``"pose_warp"``)."""
-    return PoseWarpWorldModel(config) if kind == "pose_warp" else WorldModel(config)
+def build_world_model(
+    kind: str, config: WorldModelConfig, cfg: Any = None
+) -> WorldModel | PoseWarpWorldModel:
+    """:class:`WorldModel` (``"tokens"``) or :class:`PoseWarpWorldModel` (``"pose_warp"``).
+
+    ``cfg``: the run config whose ``stage.pose_anchors`` (default ``"ctr"``) the pose head uses.
+    """
+    if kind != "pose_warp":
+        return WorldModel(config)
+    anchors = "ctr" if cfg is None else str(cfg.stage.get("pose_anchors") or "ctr")
+    if anchors not in ANCHORS:
+        raise ValueError(f"stage.pose_anchors: expected one of {ANCHORS}, got {anchors!r}")
+    return PoseWarpWorldModel(config, anchors=anchors)
 
 
 def extra_train_roots(cfg: Any) -> list[tuple[Path, Path]]:
