@@ -24,6 +24,11 @@ converted, tokenizer_ckpt, wm_overrides = base.converted, base.tokenizer_ckpt, b
 POSE = ["stage.forecaster=pose_warp"]
 
 
+def base_tok(overrides: list[str]) -> str:
+    """The tokenizer checkpoint of the overrides."""
+    return next(o.split("=", 1)[1] for o in overrides if o.startswith("stage.tokenizer_ckpt="))
+
+
 def _stage(wm_overrides, tmp_path):
     cfg = compose_cfg([*wm_overrides, *POSE, f"run_dir={tmp_path}"])
     stage = WorldModelStage(cfg)
@@ -94,6 +99,10 @@ def test_trains_evaluates_and_reloads_its_kind(wm_overrides, tmp_path):
     assert m["val/model_warp/miou_1s"] == pytest.approx(metrics["val/model_warp/miou_1s"])
     rows = (tmp_path / "eval" / "world_model_eval.md").read_text()
     assert "| 3D-Occ | model, warp only |" in rows and "| 3D-Occ | model, tokens only |" in rows
+    from renderworld.training.stages.world_model import export_planner_bundle
+
+    with pytest.raises(ValueError, match="world_model_ckpt: .* is a stage.forecaster='pose_warp'"):
+        export_planner_bundle(run / "checkpoints" / "last.pt", base_tok(wm_overrides), tmp_path)
 
 
 def test_extra_train_roots_add_their_train_windows(wm_overrides, converted, tmp_path):
