@@ -7,8 +7,13 @@ Occ3D gts (``stage.occ_root: null``, the "3D-Occ" setting) or exported Img2Occ p
 so each keyframe is encoded once per run. The tokenizer lives on the stage, never in the trained
 module: checkpoints hold the world model only.
 
-Loss (paper Eq. 6.20): token cross-entropy + ``lambda_l2`` x L2 of the trajectory accumulated
-from the last history frame (``cumulative_from = history - 1``, as a rollout plans).
+Forecaster (``stage.forecaster``): ``tokens`` (below: the autoregressive token model) or
+``pose_warp`` (predicted future poses carry the current frame, tokens fill newly revealed space;
+:mod:`renderworld.training.stages.world_model_pose`, docs/world_model.md). Evaluating a
+checkpoint uses its own forecaster.
+
+Loss (paper Eq. 6.20, ``tokens``): token cross-entropy + ``lambda_l2`` x L2 of the trajectory
+accumulated from the last history frame (``cumulative_from = history - 1``, as a rollout plans).
 
 Evaluation (``val/``): for each window, roll out ``future`` frames from the history tokens,
 the history displacements and the **current** command; decode the forecast; forecast mIoU/IoU
