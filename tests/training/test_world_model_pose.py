@@ -148,3 +148,11 @@ def test_both_settings_score_alike_on_pseudo_labels_equal_to_gt(wm_overrides, co
     assert "val/model_warp/miou_1s" in scored and "val/camera/model_net/miou_1s" in m
     for k in scored:
         assert m[f"val/camera/{k[4:]}"] == pytest.approx(m[k], rel=1e-9, nan_ok=True), k
+
+
+def test_trains_in_the_camera_setting(wm_overrides, converted, tmp_path):
+    labels = base._pseudo_labels(converted, tmp_path / "pseudo", free=False)
+    metrics = train(compose_cfg([*wm_overrides, *POSE, f"run_dir={tmp_path / 'run'}",
+                                 f"stage.occ_root={labels}", "trainer.max_steps=2",
+                                 "trainer.val_every=2"]))  # fmt: skip
+    assert math.isfinite(metrics["val/model/miou_1s"]) and math.isfinite(metrics["val/l2"])
