@@ -11,6 +11,7 @@ import torch
 from renderworld.constants import COMMANDS, FUTURE_FRAMES, HISTORY_FRAMES, GridSpec
 from renderworld.data.dataset_base import InfosDataset
 from renderworld.data.errors import DatasetError
+from renderworld.data.frame_cache import FrameCache
 from renderworld.data.infos import BOX_FIELDS
 from renderworld.geometry import invert_pose
 
@@ -40,12 +41,17 @@ class OccSequenceDataset(InfosDataset):
             with more keep the M nearest to the ego.
         cache_frames: keyframes whose grid-sampled occupancy is kept in memory (least recently
             used dropped); overlapping windows then load each file about once.
+        frame_cache: None, or a folder where each file's grid-sampled occupancy and camera mask
+            are kept across runs (:class:`renderworld.data.frame_cache.FrameCache`; keyed by
+            the file's path, size, mtime and hash, the grid and the code version).
 
     Item (dict):
         occ: uint8 [T,X,Y,Z], each frame in its own ego frame.
         mask_camera: bool [T,X,Y,Z].
         ego_displacements: float32 [T-1,2], ``p[i+1] - p[i]`` with ``p`` the frames' positions
             in the last history frame's ego frame (metres; VAD convention, as PlanRequest).
+        history_poses: float32 [H,3], (x, y, yaw) of the history frames in the last history
+            frame's ego frame (metres, radians; the last row is zeros).
         future_traj: float32 [F,2], positions of the future frames in that frame (metres).
         future_mask: bool [F].
         command: int64, index into COMMANDS, of the last history frame.
@@ -64,8 +70,10 @@ class OccSequenceDataset(InfosDataset):
         occ_root=None,
         max_boxes: int | None = None,
         cache_frames: int = 32,
+        frame_cache=None,
     ):
         super().__init__(infos, data_root, grid)
+        self.frame_cache = None if frame_cache is None else FrameCache(frame_cache)
         if not isinstance(cache_frames, int) or cache_frames < 0:
             raise ValueError(f"cache_frames: expected an integer >= 0, got {cache_frames!r}")
         self.cache_frames = cache_frames
@@ -118,7 +126,11 @@ class OccSequenceDataset(InfosDataset):
         if row in self._cache:
             self._cache.move_to_end(row)
             return self._cache[row]
-        occ, mask_cam, _ = self._occ(self._occ_path(row))
+        path = self._occ_path(row)
+        if self.frame_cache is not None and path.is_file():
+            occ, mask_cam = self.frame_cache.get(path, self.grid, lambda p: self._occ(p)[:2])
+        else:
+            occ, mask_cam, _ = self._occ(path)
         if self.cache_frames:
             self._cache[row] = (occ, mask_cam)
             if len(self._cache) > self.cache_frames:
@@ -136,7 +148,10 @@ class OccSequenceDataset(InfosDataset):
         # Positions of every frame in the current (last history) ego frame; displacements are
         # their per-step differences (VAD convention, as renderworld.planning.PlanRequest), so
         # the future trajectory is exactly the cumulative sum of the future displacements.
-        pos = (invert_pose(poses[self.history - 1]) @ poses)[:, :2, 3]
+        rel = invert_pose(poses[self.history - 1]) @ poses
+        pos = rel[:, :2, 3]
+        yaw = np.arctan2(rel[: self.history, 1, 0], rel[: self.history, 0, 0])
+        hist_poses = np.column_stack([pos[: self.history], yaw])
         disp = np.diff(pos, axis=0)
         traj = pos[self.history :]
         m = self.max_boxes
@@ -151,6 +166,7 @@ class OccSequenceDataset(InfosDataset):
             "occ": torch.from_numpy(np.stack(occ)),
             "mask_camera": torch.from_numpy(np.stack(mask_cam)),
             "ego_displacements": torch.from_numpy(disp.astype(np.float32)),
+            "history_poses": torch.from_numpy(hist_poses.astype(np.float32)),
             "future_traj": torch.from_numpy(traj.reshape(self.future, 2).astype(np.float32)),
             "future_mask": torch.ones(self.future, dtype=torch.bool),
             "command": torch.tensor(COMMANDS.index(self.text["command"][last])),

@@ -123,17 +123,26 @@ def _world_model_section(out: Path) -> list[tuple[str, str]]:
     return [("Forecasting and planning (mini_val; 3D-Occ and Camera settings)", table.read_text())]
 
 
+#: Each training run of the main job and the validation metric its curves show (its monitor).
+_CURVES = {
+    "img2occ": "val/cam/miou",
+    "tokenizer": "val/miou",
+    "tokenizer_camera": "val/miou",
+    "world_model": "val/model/miou_avg",
+    "world_model_camera": "val/model/miou_avg",
+}
+
+
 def _pictures(cfg: Any, out: Path) -> list[str]:
     """Markdown image lines: training curves, Img2Occ views, BEV and forecast pictures."""
     # Imported here: the main job's own process stays light until it writes the report.
     from renderworld.training.stages.world_model_pictures import BEV_PNG, TRAJ_PNG
 
     figures = []
-    runs = ("img2occ", "tokenizer", "tokenizer_camera", "world_model", "world_model_camera")
-    for run in runs:
+    for run, val_key in _CURVES.items():
         png = plot_training_curves(
             out / run / "metrics.csv", out / "figures" / f"curves_{run}.png",
-            keys=("train/loss", "val/"),
+            keys=("train/loss", "val/loss", val_key),
         )  # fmt: skip
         if png:
             figures.append(f"![{run} training curves](figures/{png.name})")

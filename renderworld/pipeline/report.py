@@ -19,7 +19,11 @@ __all__ = ["bev_image", "plot_training_curves", "metrics_table", "per_class_tabl
 
 
 def plot_training_curves(metrics_csv: Path, out_png: Path, keys=("train/loss",)) -> Path | None:
-    """Plot chosen keys of a run's long-format ``metrics.csv`` (step, epoch, key, value)."""
+    """Plot chosen keys of a run's long-format ``metrics.csv`` (step, epoch, key, value).
+
+    One panel per key (exact metric names, e.g. ``val/model/miou_avg``); a key the file does not
+    hold gets no panel (never an empty one). None when the file is missing or holds none.
+    """
     if not Path(metrics_csv).is_file():
         return None
     import matplotlib
@@ -30,16 +34,15 @@ def plot_training_curves(metrics_csv: Path, out_png: Path, keys=("train/loss",))
     series: dict[str, list[tuple[float, float]]] = defaultdict(list)
     with open(metrics_csv) as fh:
         for row in csv.DictReader(fh):
-            if row["key"] in keys or any(row["key"].startswith(k) for k in keys):
+            if row["key"] in keys:
                 series[row["key"]].append((float(row["step"]), float(row["value"])))
-    if not series:
+    shown = [k for k in keys if series.get(k)]
+    if not shown:
         return None
-    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3), squeeze=False)
-    for ax, key in zip(axes[0], keys, strict=True):
-        for name, pts in sorted(series.items()):
-            if name == key:
-                xs, ys = zip(*pts, strict=True)
-                ax.plot(xs, ys)
+    fig, axes = plt.subplots(1, len(shown), figsize=(4.2 * len(shown), 3), squeeze=False)
+    for ax, key in zip(axes[0], shown, strict=True):
+        xs, ys = zip(*series[key], strict=True)
+        ax.plot(xs, ys, marker="o" if len(xs) < 12 else None)
         ax.set_title(key)
         ax.set_xlabel("step")
         ax.grid(alpha=0.3)

@@ -4,8 +4,11 @@ See :mod:`renderworld.world.config` for the displacement/trajectory convention.
 """
 
 from renderworld.world.baselines import (
+    constant_turn_rate_poses,
+    constant_turn_rate_trajectory,
     constant_velocity_trajectory,
     copy_paste_forecast,
+    warp_along_poses,
     warp_constant_velocity_forecast,
 )
 from renderworld.world.config import WorldModelConfig
@@ -26,6 +29,8 @@ __all__ = [
     "WorldModelOutput",
     "WorldModelTargets",
     "command_from_trajectory",
+    "constant_turn_rate_poses",
+    "constant_turn_rate_trajectory",
     "constant_velocity_trajectory",
     "copy_paste_forecast",
     "displacements_from_poses",
@@ -33,6 +38,7 @@ __all__ = [
     "frame_poses_from_poses",
     "rollout",
     "teacher_forcing_split",
+    "warp_along_poses",
     "warp_constant_velocity_forecast",
     "world_model_loss",
 ]

@@ -22,7 +22,7 @@ from renderworld.data import (
 )
 from renderworld.data.infos import stack_column
 from renderworld.geometry import invert_pose, project_points
-from renderworld.world.ego import displacements_from_poses
+from renderworld.world.ego import displacements_from_poses, frame_poses_from_poses
 from tests.converter.datasets_for_tests import VERSION, build, build_and_convert
 
 C = 6
@@ -223,6 +223,10 @@ def test_sequence_items_and_windows(train, left_turn):
     disp = item["ego_displacements"].numpy()
     np.testing.assert_allclose(disp, displacements_from_poses(poses, current=2), atol=1e-5)
     np.testing.assert_allclose(np.cumsum(disp[2:], axis=0), item["future_traj"].numpy(), atol=1e-5)
+    hist = item["history_poses"].numpy()
+    assert hist.shape == (3, 3)
+    np.testing.assert_allclose(hist, frame_poses_from_poses(poses, current=2)[:3], atol=1e-5)
+    assert hist[:2, 2].max() < 0  # a left turn: earlier headings lie to the right (yaw < 0)
     last = rows.iloc[2]
     np.testing.assert_allclose(
         item["future_traj"].numpy(), np.reshape(last["ego_future"], (6, 2))[:3], atol=1e-5

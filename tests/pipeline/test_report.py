@@ -94,3 +94,22 @@ def test_readme_pictures_are_checked_in_and_small():
         path = repo / ref
         assert path.is_file(), ref
         assert path.stat().st_size <= 160_000, (ref, path.stat().st_size)
+
+
+def test_training_curves_have_a_val_panel_and_no_empty_one(tmp_path):
+    from PIL import Image
+
+    from renderworld.pipeline.report import plot_training_curves
+
+    rows = ["step,epoch,key,value"]
+    rows += [f"{s},0,train/loss,{1.0 / (s + 1)}" for s in range(0, 100, 10)]
+    rows += [f"{s},0,val/model/miou_avg,{0.1 + s / 1000}" for s in (50, 100)]
+    rows += ["100,0,val/model/miou_1s,0.2"]  # a val key not asked for: no panel
+    csv_path = tmp_path / "metrics.csv"
+    csv_path.write_text("\n".join(rows) + "\n")
+    keys = ("train/loss", "val/loss", "val/model/miou_avg")  # val/loss absent: no panel
+    png = plot_training_curves(csv_path, tmp_path / "c.png", keys=keys)
+    one = plot_training_curves(csv_path, tmp_path / "one.png", keys=("train/loss",))
+    w2, w1 = Image.open(png).size[0], Image.open(one).size[0]
+    assert abs(w2 - 2 * w1) <= 2  # two panels: train loss and the val metric
+    assert plot_training_curves(csv_path, tmp_path / "none.png", keys=("val/",)) is None

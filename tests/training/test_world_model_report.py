@@ -121,3 +121,49 @@ def test_eval_settings_default_and_both(tmp_path):
 def test_eval_settings_errors_name_the_key(top, match):
     with pytest.raises(ValueError, match=match):
         eval_settings(_cfg(**top))
+
+
+def test_baselines_reference_splits_and_classes_in_the_table():
+    metrics = _metrics("", 0.0)
+    for h in ("1s", "2s", "avg"):
+        metrics[f"val/warp_ctr/miou_{h}"] = 0.3
+        metrics[f"val/warp_gt_pose/miou_{h}"] = 0.45
+        metrics[f"val/ctr_traj/l2_at_horizon_{h}"] = 0.7
+        metrics[f"val/model/turning/miou_{h}"] = 0.12
+        metrics[f"val/warp_cv/straight/l2_at_horizon_{h}"] = 9.0  # not a planner: ignored
+        metrics[f"val/model/straight/l2_at_horizon_{h}"] = 0.25
+    metrics["val/model/turning/num_windows"] = 18.0
+    metrics["val/model/class_iou/car_1s"] = 0.061
+    text, md, csv_text = report_tables(metrics, HS, [], (("3D-Occ", ""),))
+    rows = {r["method"]: r for r in csv.DictReader(io.StringIO(csv_text))}
+    assert list(rows) == [
+        "model", "Copy&Paste", "CV-warp", "CTR-warp", "CV-trajectory", "CTR-trajectory",
+        "GT-pose warp (ref.)",
+    ]  # fmt: skip
+    assert float(rows["CTR-warp"]["miou_2s_pct"]) == pytest.approx(30.0)
+    assert float(rows["CTR-trajectory"]["l2_at_horizon_1s_m"]) == pytest.approx(0.7)
+    assert float(rows["model"]["turning_miou_1s_pct"]) == pytest.approx(12.0)
+    assert float(rows["model"]["turning_windows"]) == 18.0
+    assert float(rows["model"]["straight_l2_at_horizon_2s_m"]) == pytest.approx(0.25)
+    assert float(rows["model"]["iou_car_1s_pct"]) == pytest.approx(6.1)
+    assert rows["Copy&Paste"]["iou_car_1s_pct"] == ""
+    assert "| 3D-Occ | GT-pose warp (ref.) | 45.00 |" in md
+    assert "reads the future, an upper bound for a static world, not a method" in md
+    assert "GT-pose warp (ref.)" in text
+
+
+def test_the_forecast_picture_shows_a_turning_window():
+    import math
+
+    import torch
+
+    from renderworld.training.stages.world_model_pictures import turning_window
+
+    def item(yaw_deg: float) -> dict:
+        poses = torch.zeros(6, 3)
+        poses[:, 2] = torch.linspace(0, math.radians(yaw_deg), 6)
+        return {"future_poses": poses, "future_mask": torch.ones(6, dtype=torch.bool)}
+
+    windows = [item(30), item(0), item(0), item(2), item(0), item(-40), item(0)]
+    assert turning_window(windows) == 5  # nearest the middle (3) of those turning > 5 deg
+    assert turning_window([item(0)] * 4) == 2  # none turns: the middle

@@ -18,6 +18,7 @@ import torch
 from torch.utils.data import DataLoader, Subset
 
 from data_converters import ConvertOptions, create_data
+from renderworld.constants import GRIDS
 from renderworld.data import OccSequenceDataset, load_infos
 from renderworld.metrics import ForecastMetric, OccupancyMetric, PlanningMetric
 from renderworld.planning import PlanRequest, load_planner
@@ -28,7 +29,13 @@ from renderworld.training.stages.world_model import (
     export_planner_bundle,
     world_model_config,
 )
-from renderworld.world import WorldModel, constant_velocity_trajectory, copy_paste_forecast
+from renderworld.world import (
+    WorldModel,
+    constant_turn_rate_poses,
+    constant_velocity_trajectory,
+    copy_paste_forecast,
+    warp_along_poses,
+)
 
 from .conftest import PYTHON, REPO, compose_cfg, subprocess_env
 
@@ -178,10 +185,18 @@ def test_baselines_match_renderworld_metrics_computed_directly(wm_overrides, tmp
         metrics = stage.compute_metrics(stage.evaluate(model, DataLoader(val_set, batch_size=2)))
     step1, fc_cam = OccupancyMetric(), ForecastMetric(FUTURE, (1.0, 2.0), mask_name="camera")
     plan = PlanningMetric(FUTURE, (1.0, 2.0))
+    ctr_plan = PlanningMetric(FUTURE, (1.0, 2.0))
+    gt_warp, ctr_warp = ForecastMetric(FUTURE, (1.0, 2.0)), ForecastMetric(FUTURE, (1.0, 2.0))
+    turning = 0
     for i in range(len(val_set)):
         item = val_set[i]
         occ, cur = item["occ"], item["occ"][HISTORY - 1]
         step1.update(cur, occ[HISTORY])  # Copy&Paste at step 1: the current frame repeated
+        gt_warp.update(warp_along_poses(cur, item["future_poses"], GRIDS["coarse"]), occ[HISTORY:])
+        ctr = constant_turn_rate_poses(item["history_poses"].double(), FUTURE)
+        ctr_warp.update(warp_along_poses(cur, ctr, GRIDS["coarse"]), occ[HISTORY:])
+        ctr_plan.update(ctr[:, :2].float(), item["future_traj"])
+        turning += int(item["future_poses"][:, 2].abs().max() > np.radians(5.0))
         fc_cam.update(copy_paste_forecast(cur, FUTURE), occ[HISTORY:],
                       mask=item["mask_camera"][HISTORY:])  # fmt: skip
         cv = constant_velocity_trajectory(item["ego_displacements"][: HISTORY - 1], FUTURE)
@@ -198,6 +213,13 @@ def test_baselines_match_renderworld_metrics_computed_directly(wm_overrides, tmp
     assert metrics["cv_traj/l2_mean_to_horizon_avg"] == pytest.approx(
         l2["l2_mean_to_horizon_avg"], rel=1e-6
     )
+    assert metrics["warp_gt_pose/miou_2s"] == pytest.approx(gt_warp.compute()["miou@2s"])
+    assert metrics["warp_ctr/iou_1s"] == pytest.approx(ctr_warp.compute()["iou@1s"])
+    assert metrics["ctr_traj/l2_at_horizon_2s"] == pytest.approx(
+        ctr_plan.compute()["l2_at_horizon@2s"], rel=1e-6
+    )
+    assert metrics["model/turning/num_windows"] == turning
+    assert metrics["model/straight/num_windows"] == len(val_set) - turning
     # The copy-paste forecast is not the GT: these numbers are not trivially 1.
     assert 0.0 < metrics["copy_paste/miou_step1"] < 1.0
 
@@ -234,13 +256,21 @@ def test_eval_tool_prints_the_table_and_writes_csv_and_markdown(trained, wm_over
     header = next(line for line in out.splitlines() if line.startswith("setting"))
     for col in ("method", "mIoU 1s", "mIoU 2s", "mIoU avg", "IoU avg", "L2 1s", "L2 avg", "Col 2s"):
         assert col in header
-    body = out.splitlines()[out.splitlines().index(header) + 1 :][:4]
+    body = out.splitlines()[out.splitlines().index(header) + 1 :][:7]
     assert [line.split()[:2] for line in body] == [
-        ["3D-Occ", m] for m in ("model", "Copy&Paste", "CV-warp", "CV-trajectory")
-    ]
+        ["3D-Occ", m]
+        for m in ("model", "Copy&Paste", "CV-warp", "CTR-warp", "CV-trajectory", "CTR-trajectory",
+                  "GT-pose")
+    ]  # fmt: skip
     rows = {r["method"]: r for r in csv.DictReader((tmp_path / "world_model_eval.csv").open())}
-    assert list(rows) == ["model", "Copy&Paste", "CV-warp", "CV-trajectory"]
+    assert list(rows) == [
+        "model", "Copy&Paste", "CV-warp", "CTR-warp", "CV-trajectory", "CTR-trajectory",
+        "GT-pose warp (ref.)",
+    ]  # fmt: skip
     saved = json.loads((tmp_path / "eval_metrics.json").read_text())
+    n = sum(float(rows["model"][f"{s}_windows"]) for s in ("straight", "turning"))
+    assert n == saved["val/num_windows"]
+    assert rows["CTR-warp"]["straight_windows"] == rows["model"]["straight_windows"]
     assert float(rows["model"]["miou_1s_pct"]) == pytest.approx(100 * saved["val/model/miou_1s"])
     assert float(rows["CV-trajectory"]["l2_mean_to_horizon_2s_m"]) == pytest.approx(
         saved["val/cv_traj/l2_mean_to_horizon_2s"]
@@ -322,6 +352,7 @@ def test_mini_experiment_composes_with_its_deltas():
     assert cfg.stage.name == "world_model" and cfg.dataset.name == "sim_mini"
     assert cfg.grid.name == "coarse" and cfg.trainer.device == "cpu"
     assert cfg.trainer.max_minutes >= 20 and cfg.trainer.monitor == "val/model/miou_avg"
+    assert cfg.stage.forecaster == "pose_warp" and cfg.stage.pose_anchors == "ctr_cv"
     assert cfg.stage.model.embed_dim == 64 and cfg.stage.model.num_scales == 2
     assert cfg.trainer.max_steps == 400
     assert cfg.stage.history == 5 and cfg.stage.future == 6 and cfg.stage.lambda_l2 == 0.1
@@ -387,7 +418,7 @@ def test_one_eval_scores_both_settings_in_one_table(trained, wm_overrides, conve
     for k in scored:
         assert m[f"val/camera/{k[4:]}"] == pytest.approx(m[k], rel=1e-9, nan_ok=True), k
     rows = list(csv.DictReader((tmp_path / "a" / "world_model_eval.csv").open()))
-    assert [r["setting"] for r in rows] == ["3D-Occ"] * 4 + ["Camera"] * 4
+    assert [r["setting"] for r in rows] == ["3D-Occ"] * 7 + ["Camera"] * 7
     assert (
         "Camera = Img2Occ pseudo-label inputs"
         in (tmp_path / "a" / "world_model_eval.md").read_text()

@@ -7,8 +7,13 @@ Occ3D gts (``stage.occ_root: null``, the "3D-Occ" setting) or exported Img2Occ p
 so each keyframe is encoded once per run. The tokenizer lives on the stage, never in the trained
 module: checkpoints hold the world model only.
 
-Loss (paper Eq. 6.20): token cross-entropy + ``lambda_l2`` x L2 of the trajectory accumulated
-from the last history frame (``cumulative_from = history - 1``, as a rollout plans).
+Forecaster (``stage.forecaster``): ``tokens`` (below: the autoregressive token model) or
+``pose_warp`` (predicted future poses carry the current frame, tokens fill newly revealed space;
+:mod:`renderworld.training.stages.world_model_pose`, docs/world_model.md). Evaluating a
+checkpoint uses its own forecaster.
+
+Loss (paper Eq. 6.20, ``tokens``): token cross-entropy + ``lambda_l2`` x L2 of the trajectory
+accumulated from the last history frame (``cumulative_from = history - 1``, as a rollout plans).
 
 Evaluation (``val/``): for each window, roll out ``future`` frames from the history tokens,
 the history displacements and the **current** command; decode the forecast; forecast mIoU/IoU
@@ -33,7 +38,7 @@ from typing import Any
 import torch
 from omegaconf import OmegaConf
 from torch import nn
-from torch.utils.data import Dataset
+from torch.utils.data import ConcatDataset, Dataset
 
 from renderworld.data import load_infos
 from renderworld.metrics import PlanningMetric
@@ -42,13 +47,18 @@ from renderworld.tokenizer import SceneTokenizer, Tokens
 from renderworld.training.checkpoint import CheckpointError, load_checkpoint
 from renderworld.training.registry import Stage, register_stage, sum_count
 from renderworld.training.stages import world_model_eval as wme
+from renderworld.training.stages import world_model_pose as wmp
 from renderworld.training.stages.common import grid_of, infos_dir
 from renderworld.training.stages.tokenizer import load_tokenizer
 from renderworld.training.stages.world_model_bundle import TOKENIZER_KIND, export_planner_bundle
 from renderworld.training.stages.world_model_settings import (
     EvalSetting,
+    build_world_model,
     check_same_tokenizer,
     eval_settings,
+    extra_train_roots,
+    forecaster_of,
+    frame_cache_dir,
     setting_header,
     stage_settings,
     world_model_config,
@@ -56,9 +66,11 @@ from renderworld.training.stages.world_model_settings import (
 from renderworld.world import (
     WorldModel,
     WorldModelConfig,
+    constant_turn_rate_poses,
     constant_velocity_trajectory,
     copy_paste_forecast,
     teacher_forcing_split,
+    warp_along_poses,
     warp_constant_velocity_forecast,
     world_model_loss,
 )
@@ -82,6 +94,9 @@ class WorldModelStage(Stage):
         super().__init__(cfg)
         self.settings = stage_settings(cfg)
         self.grid = grid_of(cfg)
+        #: "tokens" (WorldModel: autoregressive codes) or "pose_warp" (PoseWarpWorldModel); when
+        #: evaluating a checkpoint, its own.
+        self.forecaster = forecaster_of(cfg)
         self.horizons = wme.horizons_for(self.settings.future)
         #: Frozen tokenizers by checkpoint path (``stage.tokenizer_ckpt``, and a setting's own).
         self._tokenizers: dict[str, SceneTokenizer] = {}
@@ -91,6 +106,12 @@ class WorldModelStage(Stage):
         #: Models of settings evaluated with their own checkpoint (``camera_ckpt``), by key.
         self.setting_models: dict[str, nn.Module] = {}
         self._val_set: Dataset | None = None
+
+    @property
+    def forecasters(self) -> tuple[str, ...]:
+        """Forecast rows of this evaluation: the model (and its variants) and the baselines."""
+        extra = wmp.POSE_METHODS if self.forecaster == "pose_warp" else ()
+        return tuple(m for m in wme.FORECASTERS if m not in wmp.POSE_METHODS or m in extra)
 
     # ------------------------------------------------------------------ tokenizer
     @property
@@ -187,7 +208,9 @@ class WorldModelStage(Stage):
         mine = world_model_config(cfg, self.tokenizer.cfg)
         ckpt = cfg.get("ckpt") if cfg.get("task") == "eval" else None
         if not ckpt or not Path(str(ckpt)).is_file():
-            return WorldModel(mine)
+            return build_world_model(self.forecaster, mine, cfg)
+        stored = load_checkpoint(ckpt, expected_stage="world_model")["config"]
+        self.forecaster = forecaster_of(OmegaConf.create(stored))
         model = self._model_of_checkpoint(ckpt, mine, "ckpt")
         for s in self.eval_settings:
             if s.ckpt:  # the Camera setting's own model (camera_ckpt), loaded strictly
@@ -260,22 +283,41 @@ class WorldModelStage(Stage):
                 UserWarning,
                 stacklevel=2,
             )
-        return WorldModel(theirs)
+        kind = forecaster_of(stored)
+        if kind != self.forecaster:
+            raise ValueError(
+                f"{what}: {str(ckpt)!r} is a stage.forecaster={kind!r} model, the evaluated "
+                f"model is {self.forecaster!r}; both settings need the same forecaster"
+            )
+        return build_world_model(kind, theirs, stored)
 
     def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
         _ = self.tokenizer  # a wrong stage.tokenizer_ckpt fails before any data is read
         folder = infos_dir(cfg)
         root, st = str(cfg.dataset.data_root), self.settings
 
+        cache = frame_cache_dir(cfg)
+
         def windows(split: str, occ_root, gt_targets: bool) -> wme.WorldModelWindows:
             infos = load_infos(folder, split)
             return wme.WorldModelWindows(
-                infos, root, self.grid, st.history, st.future, occ_root, gt_targets
+                infos, root, self.grid, st.history, st.future, occ_root, gt_targets, cache
             )
 
         # Camera setting: train on pseudo labels; validate pseudo-label inputs against GT (with
         # pseudo_labels=DIR at eval, the same windows give both settings' inputs).
         train = windows(cfg.dataset.train_split, cfg.stage.get("occ_root"), False)
+        extra = [
+            wme.WorldModelWindows(load_infos(infos, cfg.dataset.train_split), extra_root,
+                                  self.grid, st.history, st.future, None, False, cache)
+            for extra_root, infos in extra_train_roots(cfg)
+        ]  # fmt: skip
+        if extra:
+            parts = [train, *extra]
+            most = max(p.seq.max_boxes for p in parts)
+            for p in parts:  # one box count M for the whole batch (default collate)
+                p.seq.max_boxes = most
+            train = ConcatDataset(parts)
         self._val_set = windows(cfg.dataset.val_split, self._val_occ_root, True)
         return train, self._val_set
 
@@ -291,8 +333,11 @@ class WorldModelStage(Stage):
 
     def loss(self, model: nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, Any]]:
         device = batch["ego_displacements"].device
-        tokens = self.window_tokens(batch, batch["occ"].shape[1], device)
-        terms = self._teacher_forced(model, batch, tokens)
+        if self.forecaster == "pose_warp":
+            terms = wmp.pose_teacher_forced(self, model, batch)
+        else:
+            tokens = self.window_tokens(batch, batch["occ"].shape[1], device)
+            terms = self._teacher_forced(model, batch, tokens)
         logs = {k: v.detach() for k, v in terms.items() if k != "loss"}
         return terms["loss"], logs
 
@@ -316,6 +361,20 @@ class WorldModelStage(Stage):
         h, f = st.history, st.future
         occ, disp = batch[setting.inputs], batch["ego_displacements"].float()
         device = disp.device
+        current = occ[:, h - 1]
+        ctr = constant_turn_rate_poses(batch["history_poses"].double(), f)
+        baselines = {
+            "copy_paste": copy_paste_forecast(current, f),
+            "warp_cv": warp_constant_velocity_forecast(current, disp[:, h - 2], f, self.grid),
+            "warp_ctr": warp_along_poses(current, ctr, self.grid),
+        }
+        plans = {
+            "cv_traj": constant_velocity_trajectory(disp[:, : h - 1], f),
+            "ctr_traj": ctr[..., :2].to(disp.dtype),
+        }
+        if self.forecaster == "pose_warp":
+            forecasts, traj = wmp.pose_forecast(self, model, batch, setting)
+            return {**forecasts, **baselines}, {"model": traj.to(disp.dtype), **plans}
         if tokens is None:
             tokens = self.window_tokens(
                 batch, h, device, setting.inputs, setting.source, setting.tokenizer
@@ -327,17 +386,17 @@ class WorldModelStage(Stage):
             frames = [
                 tok.decode(Tokens(ro.tokens[:, k], tok.cfg.codebook_sizes, names)) for k in range(f)
             ]
-        current = occ[:, h - 1]
-        forecasts = {
-            "model": torch.stack(frames, dim=1),
-            "copy_paste": copy_paste_forecast(current, f),
-            "warp_cv": warp_constant_velocity_forecast(current, disp[:, h - 2], f, self.grid),
-        }
-        trajs = {
-            "model": ro.trajectory,
-            "cv_traj": constant_velocity_trajectory(disp[:, : h - 1], f),
-        }
-        return forecasts, trajs
+        forecasts = {"model": torch.stack(frames, dim=1), **baselines}
+        return forecasts, {"model": ro.trajectory, **plans}
+
+    def references(self, batch: dict, setting: EvalSetting) -> dict[str, torch.Tensor]:
+        """Forecasts that read the future (reported as references, never as methods).
+
+        ``warp_gt_pose``: the setting's current frame warped along the ground-truth future
+        poses ``future_poses`` (an upper bound for a static world).
+        """
+        current = batch[setting.inputs][:, self.settings.history - 1]
+        return {"warp_gt_pose": warp_along_poses(current, batch["future_poses"], self.grid)}
 
     def setting_model(self, model: nn.Module, setting: EvalSetting) -> nn.Module:
         """The model a setting is scored with: its own checkpoint's, else ``model``."""
@@ -358,9 +417,14 @@ class WorldModelStage(Stage):
         stats: dict[str, torch.Tensor] = {}
         plan: dict[str, PlanningMetric] = {}
         for s in self.eval_settings:
-            stats.update(wme.empty_forecast_stats(f, device, s.prefix))
+            stats.update(wme.empty_forecast_stats(f, device, s.prefix, self.forecasters))
             for p in wme.PLANNERS:
                 plan[f"{s.prefix}{p}"] = PlanningMetric(f, hs, occupancy_grid=self.grid)
+                for split in wme.SPLITS:
+                    for name, shape in (("l2_sum", (f,)), ("l2_count", (f,)), ("windows", ())):
+                        stats[f"{s.prefix}{p}/{split}/{name}"] = torch.zeros(
+                            shape, dtype=torch.float64, device=device
+                        )
         sums: dict[str, list[torch.Tensor]] = {"loss": [], "token_ce": [], "l2": []}
         first = self.eval_settings[0]
         for batch in loader:
@@ -370,19 +434,30 @@ class WorldModelStage(Stage):
             tokens = self.window_tokens(
                 batch, occ.shape[1], device, first.inputs, first.source, first.tokenizer
             )
-            terms = self._teacher_forced(self.setting_model(raw, first), batch, tokens)
+            if self.forecaster == "pose_warp":
+                terms = wmp.pose_teacher_forced(
+                    self, self.setting_model(raw, first), batch, first.inputs, first.source,
+                    first.tokenizer,
+                )  # fmt: skip
+            else:
+                terms = self._teacher_forced(self.setting_model(raw, first), batch, tokens)
             for k in sums:
                 sums[k].append(terms[k].detach().double().cpu().expand(occ.shape[0]))
             valid = batch["future_mask"].bool()
             target = batch.get("occ_target", occ)[:, h:]
             target_mask = batch.get("mask_camera_target", batch["mask_camera"])[:, h:]
+            turning = wme.turning_windows(batch["future_poses"], valid)
             for s in self.eval_settings:
                 forecasts, trajs = self.forecast(
                     self.setting_model(raw, s), batch, s, tokens if s is first else None
                 )
-                wme.add_forecast_stats(stats, forecasts, target, target_mask, valid, s.prefix)
+                forecasts.update(self.references(batch, s))
+                wme.add_forecast_stats(
+                    stats, forecasts, target, target_mask, valid, s.prefix, turning
+                )
                 mine = {p: plan[f"{s.prefix}{p}"] for p in wme.PLANNERS}
                 wme.update_planning(mine, trajs, batch, target, valid)
+                wme.add_split_l2(stats, trajs, batch["future_traj"], valid, turning, s.prefix)
         for k, vals in sums.items():
             stats.update(sum_count(k, torch.cat(vals) if vals else torch.zeros(0)))
         for key, metric in plan.items():
@@ -401,11 +476,30 @@ class WorldModelStage(Stage):
         for s in self.eval_settings:
             for m, _, has_occ, has_traj in wme.METHODS:
                 p = f"{s.prefix}{m}"
+                if has_occ and f"{p}/full/confusion" not in stats:
+                    continue  # a variant of another forecaster
                 if has_occ:
                     full = wme.forecast_from_stats(stats, f"{p}/full", hs)
                     cam = wme.forecast_from_stats(stats, f"{p}/cam", hs, "camera")
                     out.update({f"{p}/{k}": v for k, v in full.items()})
-                    out.update({f"{p}/cam/{k}": v for k, v in cam.items() if "step" not in k})
+                    out.update(
+                        {
+                            f"{p}/cam/{k}": v
+                            for k, v in cam.items()
+                            if "step" not in k and "class" not in k
+                        }
+                    )
+                for split in wme.SPLITS:
+                    if has_occ:
+                        res = wme.forecast_from_stats(stats, f"{p}/{split}", hs)
+                        out.update({f"{p}/{split}/{k}": v for k, v in res.items()
+                                    if "step" not in k and "class_iou" not in k})  # fmt: skip
+                    if has_traj:
+                        res = wme.split_l2_from_stats(stats, f"{p}/{split}", hs)
+                        out.update({f"{p}/{split}/{k}": v for k, v in res.items()})
+                    elif has_occ:
+                        n = wme.split_l2_from_stats(stats, f"{s.prefix}model/{split}", hs)
+                        out[f"{p}/{split}/num_windows"] = n["num_windows"]
                 if has_traj:
                     res = wme.planning_from_stats(stats, f"{p}/plan", hs, self.grid)
                     out.update({f"{p}/{k}": v for k, v in res.items()})

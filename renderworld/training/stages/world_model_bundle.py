@@ -13,6 +13,7 @@ from renderworld.training.checkpoint import load_checkpoint
 from renderworld.training.stages.tokenizer import load_tokenizer
 from renderworld.training.stages.world_model_settings import (
     check_same_tokenizer,
+    forecaster_of,
     world_model_config,
 )
 from renderworld.world import WorldModel
@@ -43,11 +44,18 @@ def export_planner_bundle(
 
     Raises:
         CheckpointError: a checkpoint that is missing, of another stage, or does not fit.
+        ValueError: a ``stage.forecaster=pose_warp`` checkpoint (not a planner world model).
     """
     from renderworld.training.checkpoint import check_state_dict_keys
 
     ckpt = load_checkpoint(world_model_ckpt, expected_stage="world_model")
     cfg = OmegaConf.create(ckpt["config"])
+    kind = forecaster_of(cfg)
+    if kind != "tokens":
+        raise ValueError(
+            f"world_model_ckpt: {str(world_model_ckpt)!r} is a stage.forecaster={kind!r} model; "
+            "planner bundles hold the token world model (stage.forecaster=tokens) only"
+        )
     check_same_tokenizer(cfg, tokenizer_ckpt)
     tokenizer = load_tokenizer(tokenizer_ckpt, "cpu")
     model = WorldModel(world_model_config(cfg, tokenizer.cfg))

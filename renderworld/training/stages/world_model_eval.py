@@ -11,8 +11,13 @@ ranks; ``*_from_stats`` rebuild the accumulators from the summed counts and call
 ``compute()``. Sums of counts are exact, so a sharded evaluation equals the single-process one.
 
 Methods (DESIGN.md §4): ``model`` (forecast + plan), ``copy_paste`` (current frame repeated),
-``warp_cv`` (current frame warped under constant velocity), ``cv_traj`` (last displacement
-repeated).
+``warp_cv`` / ``warp_ctr`` (current frame warped under constant velocity / constant turn
+rate), ``cv_traj`` / ``ctr_traj`` (the same motion models as trajectories; history only) and
+the reference ``warp_gt_pose`` (current frame warped along the ground-truth future poses: reads
+the future, an upper bound for a static world).
+
+Beside the whole split, forecasts and L2 are counted on a straight / turning split of the
+windows (:func:`turning_windows`) and per class (CSV).
 """
 
 from __future__ import annotations
@@ -24,13 +29,15 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from renderworld.constants import KEYFRAME_DT, NUM_OCC3D_CLASSES, GridSpec
+from renderworld.constants import FREE_ID, KEYFRAME_DT, NUM_OCC3D_CLASSES, OCC3D_CLASSES, GridSpec
 from renderworld.data import OccSequenceDataset
 from renderworld.metrics import FORECAST_HORIZONS_S, ForecastMetric, PlanningMetric
+from renderworld.metrics.occupancy import iou_per_class
 from renderworld.training.stages.common import confusion_stats
 from renderworld.training.stages.world_model_report import (
     METHODS,
     REPORT_BASENAME,
+    SPLITS,
     report_tables,
     write_report,
 )
@@ -52,16 +59,45 @@ __all__ = [
     "planning_to_stats",
     "planning_from_stats",
     "report_tables",
+    "SPLITS",
+    "TURN_THRESHOLD_DEG",
+    "turning_windows",
+    "add_split_l2",
+    "split_l2_from_stats",
     "write_report",
 ]
 
 FORECASTERS = tuple(m[0] for m in METHODS if m[2])
 PLANNERS = tuple(m[0] for m in METHODS if m[3])
 _COLL_KEYS = ("hit", "evaluated", "gt_skipped", "outside")
+#: A window is "turning" when the ego heading of some future frame (t+1..t+S, up to 3 s)
+#: differs from the current one by more than this many degrees (ground truth; for reporting
+#: only, never an input). On the mini fixture's val split: 18 of 28 windows.
+TURN_THRESHOLD_DEG = 5.0
+
+
+def turning_windows(future_poses: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """[B] bool: windows whose valid future headings turn more than ``TURN_THRESHOLD_DEG``.
+
+    Args:
+        future_poses: [B, S, 3] (x, y, yaw) of the future frames in the current ego frame.
+        valid: [B, S] bool future frames that exist.
+    """
+    if future_poses.dim() != 3 or future_poses.shape[-1] != 3:
+        raise ValueError(f"future_poses: expected [B, S, 3], got {tuple(future_poses.shape)}")
+    if tuple(valid.shape) != tuple(future_poses.shape[:2]):
+        raise ValueError(
+            f"valid: expected {tuple(future_poses.shape[:2])}, got {tuple(valid.shape)}"
+        )
+    yaw = torch.atan2(torch.sin(future_poses[..., 2]), torch.cos(future_poses[..., 2])).abs()
+    yaw = torch.where(valid.bool(), yaw, torch.zeros_like(yaw))
+    return yaw.amax(dim=1) > np.radians(TURN_THRESHOLD_DEG)
 
 
 class WorldModelWindows(Dataset):
     """``OccSequenceDataset`` windows plus ``future_poses`` float32 [F, 3].
+
+    ``frame_cache``: folder of the on-disk frame cache (see ``OccSequenceDataset``) or None.
 
     With ``occ_root`` (pseudo labels) and ``gt_targets``, items also carry the dataset's GT
     ``occ_target`` uint8 [T,X,Y,Z] and ``mask_camera_target`` bool [T,X,Y,Z] of the same window,
@@ -72,17 +108,29 @@ class WorldModelWindows(Dataset):
     collision-vs-occupancy metric.
     """
 
-    def __init__(self, infos, data_root, grid, history, future, occ_root=None, gt_targets=False):
+    def __init__(
+        self,
+        infos,
+        data_root,
+        grid,
+        history,
+        future,
+        occ_root=None,
+        gt_targets=False,
+        frame_cache=None,
+    ):
         self.seq = OccSequenceDataset(
-            infos, data_root, history=history, future=future, grid=grid, occ_root=occ_root
-        )
+            infos, data_root, history=history, future=future, grid=grid, occ_root=occ_root,
+            frame_cache=frame_cache,
+        )  # fmt: skip
         # Camera setting: inputs are pseudo labels (occ_root) but forecasts are scored against
         # the dataset's GT; the GT windows are the same windows (same infos, history, future).
         self.gt = None
         if occ_root is not None and gt_targets:
             self.gt = OccSequenceDataset(
-                infos, data_root, history=history, future=future, grid=grid, occ_root=None
-            )
+                infos, data_root, history=history, future=future, grid=grid, occ_root=None,
+                frame_cache=frame_cache,
+            )  # fmt: skip
 
     def __len__(self) -> int:
         return len(self.seq)
@@ -164,12 +212,16 @@ def forecast_to_stats(
 
 
 def empty_forecast_stats(
-    steps: int, device: torch.device, prefix: str = ""
+    steps: int, device: torch.device, prefix: str = "", methods: tuple[str, ...] | None = None
 ) -> dict[str, torch.Tensor]:
-    """Zero ``<prefix><method>/<full|cam>/confusion`` [S, 18, 18] and ``.../skipped`` []."""
+    """Zero ``<prefix><method>/<region>/confusion`` [S, 18, 18] and ``.../skipped`` [].
+
+    Regions: ``full``, ``cam`` (camera mask) and the full volume of the ``straight`` /
+    ``turning`` windows. ``methods``: the forecasters evaluated (default all of ``METHODS``).
+    """
     out = {}
-    for p in FORECASTERS:
-        for region in ("full", "cam"):
+    for p in FORECASTERS if methods is None else methods:
+        for region in ("full", "cam", *SPLITS):
             out[f"{prefix}{p}/{region}/confusion"] = torch.zeros(
                 steps, NUM_OCC3D_CLASSES, NUM_OCC3D_CLASSES, dtype=torch.float64, device=device
             )
@@ -186,14 +238,25 @@ def add_forecast_stats(
     mask_camera: torch.Tensor,
     valid: torch.Tensor,
     prefix: str = "",
+    turning: torch.Tensor | None = None,
 ) -> None:
     """Add each method's [B, S, X, Y, Z] forecast to its full-volume and camera-mask counts.
 
-    Keys are ``<prefix><method>/...`` (see :func:`empty_forecast_stats`).
+    Keys are ``<prefix><method>/...`` (see :func:`empty_forecast_stats`). With ``turning``
+    ([B] bool, :func:`turning_windows`) the full-volume counts of the straight and the turning
+    windows are added too.
     """
+    regions = [("full", None, valid), ("cam", mask_camera, valid)]
+    if turning is not None:
+        t = turning.to(valid.device).bool()[:, None]
+        regions += [("straight", None, valid & ~t), ("turning", None, valid & t)]
     for p, pred in forecasts.items():
-        for region, mask in (("full", None), ("cam", mask_camera)):
-            conf, skipped = forecast_to_stats(pred, gt, valid, mask)
+        for region, mask, ok in regions:
+            if region in SPLITS and not ok.any():
+                continue  # no window of that kind in this batch
+            conf, skipped = forecast_to_stats(pred, gt, ok, mask)
+            if region in SPLITS:
+                skipped = skipped * 0  # the other split's frames are not skipped
             for name, value in (("confusion", conf), ("skipped", skipped)):
                 key = f"{prefix}{p}/{region}/{name}"
                 stats[key] += value.to(stats[key].device)
@@ -224,6 +287,10 @@ def forecast_from_stats(
         out[f"{name}_avg"] = float(res[f"{name}_avg"])
         for k, v in enumerate(res[f"{name}_per_step"], start=1):
             out[f"{name}_step{k}"] = float(v)
+    for h, k in zip(metric.horizons_s, metric.horizon_steps):
+        ious = iou_per_class(np.rint(conf[k - 1]).astype(np.int64))
+        for c, name in enumerate(OCC3D_CLASSES[:FREE_ID]):
+            out[f"class_iou/{name}_{_hname(h)}"] = float(ious[c])
     return out
 
 
@@ -302,4 +369,56 @@ def planning_from_stats(
     for name, value in res.items():
         if isinstance(value, (int, float)) and name not in ("num_samples", "masked_steps"):
             out[name.replace("@", "_")] = float(value)
+    return out
+
+
+# ------------------------------------------------------------------------ straight / turning L2
+def add_split_l2(
+    stats: dict[str, torch.Tensor],
+    trajectories: Mapping[str, torch.Tensor],
+    gt_traj: torch.Tensor,
+    valid: torch.Tensor,
+    turning: torch.Tensor,
+    prefix: str = "",
+) -> None:
+    """Add per-step L2 sums / counts and window counts of the straight and turning windows.
+
+    Keys ``<prefix><planner>/<split>/l2_sum`` [S], ``.../l2_count`` [S], ``.../windows`` [].
+
+    Args:
+        trajectories: ``{planner: [B, S, 2]}`` metres, current ego frame.
+        gt_traj: [B, S, 2] metres.
+        valid: [B, S] bool.
+        turning: [B] bool (:func:`turning_windows`).
+    """
+    for p, traj in trajectories.items():
+        err = torch.linalg.norm(traj.double() - gt_traj.double().to(traj.device), dim=-1)
+        ok = valid.to(traj.device).bool()
+        t = turning.to(traj.device).bool()
+        for split, sel in (("straight", ~t), ("turning", t)):
+            m = ok & sel[:, None]
+            for name, value in (
+                ("l2_sum", torch.where(m, err, torch.zeros_like(err)).sum(0)),
+                ("l2_count", m.double().sum(0)),
+                ("windows", sel.double().sum()),
+            ):
+                key = f"{prefix}{p}/{split}/{name}"
+                v = value.to(torch.float64)
+                stats[key] = stats[key] + v.to(stats[key].device) if key in stats else v
+
+
+def split_l2_from_stats(
+    stats: Mapping[str, torch.Tensor], key: str, horizons_s: tuple[float, ...]
+) -> dict[str, float]:
+    """``l2_at_horizon_<h>`` (+ ``_avg``) metres and ``num_windows`` of one split's sums."""
+    s = stats[f"{key}/l2_sum"].detach().cpu().double().numpy()
+    n = stats[f"{key}/l2_count"].detach().cpu().double().numpy()
+    out: dict[str, float] = {"num_windows": float(stats[f"{key}/windows"])}
+    vals = []
+    for h in horizons_s:
+        k = int(round(h / KEYFRAME_DT))
+        v = float(s[k - 1] / n[k - 1]) if n[k - 1] else float("nan")
+        out[f"l2_at_horizon_{_hname(h)}"] = v
+        vals.append(v)
+    out["l2_at_horizon_avg"] = float(np.mean(vals))
     return out

@@ -8,7 +8,8 @@ for the Camera setting added by ``tools/eval.py ... pseudo_labels=DIR``.
 
 Printed table and markdown show the headline conventions (mIoU / IoU full volume, L2 at horizon,
 collision vs GT boxes at horizon); the CSV holds these and the others (camera-mask mIoU / IoU,
-mean-to-horizon L2, collision vs GT occupancy, skipped-GT and outside-grid counts). A value that
+mean-to-horizon L2, collision vs GT occupancy, skipped-GT and outside-grid counts, mIoU / IoU /
+L2 of the straight and the turning windows, per-class IoU at each horizon). A value that
 does not apply to a method (a baseline without a planner, a planner without a forecast) is "–"
 in the text and markdown, explained by a legend line under the table, and empty in the CSV.
 """
@@ -21,12 +22,15 @@ import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from renderworld.constants import FREE_ID, OCC3D_CLASSES
 from renderworld.metrics import PlanningMetric
 
 __all__ = [
     "METHODS",
     "REPORT_BASENAME",
+    "REFERENCES",
     "SETTING_LABELS",
+    "SPLITS",
     "NOT_APPLICABLE",
     "report_tables",
     "write_report",
@@ -35,19 +39,39 @@ __all__ = [
 #: (metric prefix, table label, has an occupancy forecast, has a trajectory)
 METHODS: tuple[tuple[str, str, bool, bool], ...] = (
     ("model", "model", True, True),
+    ("model_warp", "model, warp only", True, False),
+    ("model_net", "model, tokens only", True, False),
     ("copy_paste", "Copy&Paste", True, False),
     ("warp_cv", "CV-warp", True, False),
+    ("warp_ctr", "CTR-warp", True, False),
     ("cv_traj", "CV-trajectory", False, True),
+    ("ctr_traj", "CTR-trajectory", False, True),
+    ("warp_gt_pose", "GT-pose warp (ref.)", True, False),
 )
+#: Methods that read the future (reported as references, never as competitors).
+REFERENCES = ("warp_gt_pose",)
+#: Window subsets of the CSV's split columns (see ``world_model_eval.TURN_THRESHOLD_DEG``).
+SPLITS = ("straight", "turning")
 REPORT_BASENAME = "world_model_eval"
 #: Table label of each setting.
 SETTING_LABELS = {"occ3d": "3D-Occ", "camera": "Camera"}
 #: How a value that does not apply is shown (text and markdown).
 NOT_APPLICABLE = "–"
 _LEGEND_NA = (
-    f"{NOT_APPLICABLE}: not applicable — Copy&Paste and CV-warp forecast occupancy but plan no "
-    "trajectory (no L2 / collision); CV-trajectory plans but forecasts no occupancy "
+    f"{NOT_APPLICABLE}: not applicable — Copy&Paste and the warps forecast occupancy but plan no "
+    "trajectory (no L2 / collision); the CV / CTR trajectories plan but forecast no occupancy "
     "(no mIoU / IoU)."
+)
+_LEGEND_BASELINES = (
+    "CV = constant velocity (last displacement repeated, heading fixed); CTR = constant turn "
+    "rate (last displacement and last heading change repeated); both read the history only. "
+    "GT-pose warp (ref.) = the current frame warped along the ground-truth future poses "
+    "(x, y, yaw): it reads the future, an upper bound for a static world, not a method."
+)
+_LEGEND_VARIANTS = (
+    "model, warp only = the current frame warped along the model's predicted poses; model, "
+    "tokens only = the token network's decoded forecast; model = the warp where its source "
+    "lies on the current grid, the tokens elsewhere."
 )
 _LEGEND_NAN = (
     "nan: undefined — no class present in GT or forecast at that horizon, or no window with a "
@@ -94,6 +118,15 @@ def _csv_columns(horizons_s: tuple[float, ...]) -> list[tuple[str, str, float]]:
     for src in PlanningMetric.SOURCES:
         for what in ("gt_skipped", "outside_grid"):
             out.append((f"collision_{src}_{what}", f"collision_{src}_{what}", 1.0))
+    for split in SPLITS:
+        out.append((f"{split}_windows", f"{split}/num_windows", 1.0))
+        for metric, unit, scale in (("miou", "pct", 100.0), ("iou", "pct", 100.0),
+                                    ("l2_at_horizon", "m", 1.0)):  # fmt: skip
+            for h in hs:
+                out.append((f"{split}_{metric}_{h}_{unit}", f"{split}/{metric}_{h}", scale))
+    for c in OCC3D_CLASSES[:FREE_ID]:
+        for h in hs[:-1]:
+            out.append((f"iou_{c}_{h}_pct", f"class_iou/{c}_{h}", 100.0))
     return out
 
 
@@ -147,17 +180,22 @@ def report_tables(
         for method, name, _, _ in METHODS:
             key = f"{prefix}{method}"
             vals = [_value(metrics, key, c[1], c[2]) for c in cols]
+            if all(v is None for v in vals):
+                continue  # a method this evaluation did not run (e.g. an older metrics file)
             rows.append((label, name, vals, [_value(metrics, key, c[1], c[2]) for c in csv_cols]))
     shown = [v for r in rows for v in r[2]]
-    legend = []
+    legend = [_LEGEND_BASELINES]
+    if any(r[1] == "model, warp only" for r in rows):
+        legend.append(_LEGEND_VARIANTS)
     if any(v is None for v in shown):
         legend.append(_LEGEND_NA)
     if any(v is not None and math.isnan(v) for v in shown):
         legend.append(_LEGEND_NAN)
 
     width = max(9, *(len(c[0]) + 1 for c in cols))
+    mw = max(len(m[1]) for m in METHODS) + 1
     lines = [f"# {h}" for h in header]
-    lines.append(f"{'setting':<9}{'method':<15}" + "".join(f"{c[0]:>{width}}" for c in cols))
+    lines.append(f"{'setting':<9}{'method':<{mw}}" + "".join(f"{c[0]:>{width}}" for c in cols))
     md = [*(f"> {h}  " for h in header), ""]
     md.append("| setting | method | " + " | ".join(c[0] for c in cols) + " |")
     md.append("|---|---|" + "---:|" * len(cols))
@@ -165,7 +203,7 @@ def report_tables(
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(["setting", "method", *(c[0] for c in csv_cols)])
     for label, name, vals, csv_vals in rows:
-        lines.append(f"{label:<9}{name:<15}" + "".join(f"{_fmt(v):>{width}}" for v in vals))
+        lines.append(f"{label:<9}{name:<{mw}}" + "".join(f"{_fmt(v):>{width}}" for v in vals))
         md.append(f"| {label} | {name} | " + " | ".join(_fmt(v) for v in vals) + " |")
         writer.writerow([label, name, *("" if v is None else repr(v) for v in csv_vals)])
     lines += [f"# {x}" for x in legend]

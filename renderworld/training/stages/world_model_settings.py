@@ -27,7 +27,8 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from renderworld.constants import FUTURE_FRAMES
-from renderworld.world import WorldModelConfig
+from renderworld.world import WorldModel, WorldModelConfig
+from renderworld.world.pose import ANCHORS, PoseWarpWorldModel
 
 __all__ = [
     "EvalSetting",
@@ -36,6 +37,11 @@ __all__ = [
     "world_model_config",
     "stage_settings",
     "check_same_tokenizer",
+    "FORECASTERS",
+    "build_world_model",
+    "extra_train_roots",
+    "forecaster_of",
+    "frame_cache_dir",
 ]
 
 # WorldModelConfig fields that come from the tokenizer and the stage, not from stage.model.
@@ -217,3 +223,74 @@ def check_same_tokenizer(trained_cfg: Any, tokenizer_ckpt, key: str = "tokenizer
             UserWarning,
             stacklevel=3,
         )
+
+
+FORECASTERS = ("tokens", "pose_warp")
+
+
+def forecaster_of(cfg: Any) -> str:
+    """``stage.forecaster`` of a run config (absent: ``"tokens"``, the original world model)."""
+    kind = cfg.stage.get("forecaster") or "tokens"
+    if kind not in FORECASTERS:
+        raise ValueError(f"stage.forecaster: expected one of {FORECASTERS}, got {kind!r}")
+    return str(kind)
+
+
+def build_world_model(
+    kind: str, config: WorldModelConfig, cfg: Any = None
+) -> WorldModel | PoseWarpWorldModel:
+    """:class:`WorldModel` (``"tokens"``) or :class:`PoseWarpWorldModel` (``"pose_warp"``).
+
+    ``cfg``: the run config whose ``stage.pose_anchors`` (default ``"ctr"``) the pose head uses.
+    """
+    if kind != "pose_warp":
+        return WorldModel(config)
+    anchors = "ctr" if cfg is None else str(cfg.stage.get("pose_anchors") or "ctr")
+    if anchors not in ANCHORS:
+        raise ValueError(f"stage.pose_anchors: expected one of {ANCHORS}, got {anchors!r}")
+    return PoseWarpWorldModel(config, anchors=anchors)
+
+
+def extra_train_roots(cfg: Any) -> list[tuple[Path, Path]]:
+    """(data root, infos folder) of each ``stage.extra_train_roots`` entry.
+
+    Their train splits (GT occupancy) are added to the training windows; validation stays the
+    run's own ``dataset.val_split``. Infos are read from
+    ``<root>/renderworld_infos/<dataset.version>``.
+
+    Raises:
+        ValueError: an entry that is not a folder with converted infos, or a Camera-setting run
+            (``stage.occ_root``), whose pseudo labels exist for its own data root only.
+    """
+    roots = cfg.stage.get("extra_train_roots") or []
+    if roots and cfg.stage.get("occ_root"):
+        raise ValueError(
+            "stage.extra_train_roots: GT-occupancy roots cannot be mixed into a Camera-setting "
+            "run (stage.occ_root is set)"
+        )
+    out = []
+    for r in roots:
+        infos = Path(str(r)) / "renderworld_infos" / str(cfg.dataset.version)
+        if not infos.is_dir():
+            raise ValueError(
+                f"stage.extra_train_roots: {infos} does not exist; run tools/create_data.py "
+                f"data_root={r} version={cfg.dataset.version} first"
+            )
+        out.append((Path(str(r)), infos))
+    return out
+
+
+def frame_cache_dir(cfg: Any) -> Path | None:
+    """Folder of the on-disk frame cache of ``stage.frame_cache``.
+
+    ``true``: ``<dataset.data_root>/renderworld_cache/frames``; a string: that folder;
+    ``false`` / null: no cache.
+    """
+    value = cfg.stage.get("frame_cache")
+    if value is None or value is False:
+        return None
+    if value is True:
+        return Path(str(cfg.dataset.data_root)) / "renderworld_cache" / "frames"
+    if isinstance(value, str) and value:
+        return Path(value)
+    raise ValueError(f"stage.frame_cache: expected true, false, null or a folder, got {value!r}")

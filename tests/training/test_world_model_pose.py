@@ -1,0 +1,158 @@
+"""The world_model stage with stage.forecaster=pose_warp: leak-free forecasts, train and eval."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from renderworld.constants import FREE_ID
+from renderworld.training import evaluate, train
+from renderworld.training.stages.world_model import WorldModelStage
+from renderworld.world.pose import PoseWarpWorldModel
+
+from . import test_world_model_stage as base
+from .conftest import compose_cfg
+
+HISTORY, FUTURE = base.HISTORY, base.FUTURE
+# The stage tests' module fixtures: the tiny fixture, its tiny tokenizer and the overrides.
+converted, tokenizer_ckpt, wm_overrides = base.converted, base.tokenizer_ckpt, base.wm_overrides
+
+POSE = ["stage.forecaster=pose_warp"]
+
+
+def base_tok(overrides: list[str]) -> str:
+    """The tokenizer checkpoint of the overrides."""
+    return next(o.split("=", 1)[1] for o in overrides if o.startswith("stage.tokenizer_ckpt="))
+
+
+def _stage(wm_overrides, tmp_path):
+    cfg = compose_cfg([*wm_overrides, *POSE, f"run_dir={tmp_path}"])
+    stage = WorldModelStage(cfg)
+    _, val_set = stage.build_datasets(cfg)
+    model = stage.build_model(cfg).eval()
+    assert isinstance(model, PoseWarpWorldModel)
+    with torch.no_grad():  # a pose head that is not constant turn rate, a busy token net
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return stage, model, val_set
+
+
+def test_changing_the_future_ground_truth_leaves_the_forecast_unchanged(wm_overrides, tmp_path):
+    stage, model, val_set = _stage(wm_overrides, tmp_path)
+    batch = next(iter(DataLoader(val_set, batch_size=2)))
+    setting = stage.eval_settings[0]
+    fc, traj = stage.forecast(model, batch, setting, None)
+    h = HISTORY
+    g = torch.Generator().manual_seed(0)
+    other = copy.deepcopy(batch)
+    other["occ"][:, h:] = torch.randint(0, 18, other["occ"][:, h:].shape, generator=g).to(
+        torch.uint8
+    )
+    other["mask_camera"][:, h:] = ~other["mask_camera"][:, h:]
+    for key in ("future_poses", "future_traj", "future_boxes"):
+        other[key] = torch.randn(other[key].shape, generator=g) * 10
+    other["ego_displacements"][:, h - 1 :] = torch.randn(2, FUTURE, 2, generator=g) * 5
+    other["future_boxes_mask"] = ~other["future_boxes_mask"]
+    fc2, traj2 = stage.forecast(model, other, setting, None)
+    for k in ("model", "model_warp", "model_net", "copy_paste", "warp_cv", "warp_ctr"):
+        assert torch.equal(fc[k], fc2[k]), k
+    for k in ("model", "cv_traj", "ctr_traj"):
+        assert torch.equal(traj[k], traj2[k]), k
+    # The history does drive it (the test above could not pass by ignoring every input).
+    moved = copy.deepcopy(batch)
+    moved["history_poses"][:, :-1, 2] += 0.3
+    fc3, traj3 = stage.forecast(model, moved, setting, None)
+    assert not torch.equal(traj3["model"], traj["model"])
+    assert not torch.equal(fc3["model_warp"], fc["model_warp"])
+
+
+def test_forecast_takes_the_warp_on_the_grid_and_the_tokens_elsewhere(wm_overrides, tmp_path):
+    stage, model, val_set = _stage(wm_overrides, tmp_path)
+    batch = next(iter(DataLoader(val_set, batch_size=2)))
+    fc, _ = stage.forecast(model, batch, stage.eval_settings[0], None)
+    same_as_warp = fc["model"] == fc["model_warp"]
+    same_as_net = fc["model"] == fc["model_net"]
+    assert (same_as_warp | same_as_net | (fc["model"] == FREE_ID)).all()
+    # Classes the current frame does not hold come from neither the warp nor the fill.
+    h = HISTORY
+    for b in range(2):
+        now = set(batch["occ"][b, h - 1].unique().tolist())
+        assert set(fc["model"][b].unique().tolist()) <= now | {FREE_ID}
+    assert fc["model"].shape == (2, FUTURE, *stage.grid.shape)
+
+
+def test_trains_evaluates_and_reloads_its_kind(wm_overrides, tmp_path):
+    run = tmp_path / "run"
+    metrics = train(compose_cfg([*wm_overrides, *POSE, f"run_dir={run}", "trainer.max_steps=3",
+                                 "trainer.val_every=3", "trainer.monitor=val/model/miou_avg",
+                                 "trainer.monitor_mode=max"]))  # fmt: skip
+    for key in ("val/model/miou_1s", "val/model_warp/miou_1s", "val/model_net/iou_2s",
+                "val/model/l2_at_horizon_2s", "val/l2"):  # fmt: skip
+        assert math.isfinite(metrics[key]), key
+    # Eval without stage.forecaster: the checkpoint's kind is used.
+    m = evaluate(compose_cfg([*wm_overrides, f"ckpt={run / 'checkpoints' / 'last.pt'}",
+                              f"run_dir={tmp_path / 'eval'}"], "eval"))  # fmt: skip
+    assert m["val/model_warp/miou_1s"] == pytest.approx(metrics["val/model_warp/miou_1s"])
+    rows = (tmp_path / "eval" / "world_model_eval.md").read_text()
+    assert "| 3D-Occ | model, warp only |" in rows and "| 3D-Occ | model, tokens only |" in rows
+    from renderworld.training.stages.world_model import export_planner_bundle
+
+    with pytest.raises(ValueError, match="world_model_ckpt: .* is a stage.forecaster='pose_warp'"):
+        export_planner_bundle(run / "checkpoints" / "last.pt", base_tok(wm_overrides), tmp_path)
+
+
+def test_extra_train_roots_add_their_train_windows(wm_overrides, converted, tmp_path):
+    root, infos = converted
+    extra = tmp_path / "extra"
+    extra.mkdir()
+    for child in root.iterdir():
+        (extra / child.name).symlink_to(child)
+    (extra / "renderworld_infos").mkdir()
+    (extra / "renderworld_infos" / "v1.0-mini").symlink_to(infos)
+    cfg = compose_cfg([*wm_overrides, f"run_dir={tmp_path}"])
+    one, val = WorldModelStage(cfg).build_datasets(cfg)
+    cfg = compose_cfg([*wm_overrides, f"run_dir={tmp_path}", f"stage.extra_train_roots=[{extra}]"])
+    two, val2 = WorldModelStage(cfg).build_datasets(cfg)
+    assert len(two) == 2 * len(one) and len(val2) == len(val)
+    assert torch.equal(two[len(one)]["occ"], one[0]["occ"])
+    bad = compose_cfg(
+        [*wm_overrides, f"run_dir={tmp_path}", f"stage.extra_train_roots=[{tmp_path}]"]
+    )
+    with pytest.raises(ValueError, match="stage.extra_train_roots: .* does not exist"):
+        WorldModelStage(bad).build_datasets(bad)
+
+
+def test_pose_step_weighting_names():
+    from renderworld.training.stages.world_model_pose import pose_step_weights
+
+    assert pose_step_weights("uniform", 6) is None
+    w = pose_step_weights("inverse", 3)
+    torch.testing.assert_close(w, torch.tensor([1.0, 0.5, 1 / 3]) / (11 / 18))
+    with pytest.raises(ValueError, match="stage.pose_step_weighting: expected"):
+        pose_step_weights("log", 3)
+
+
+def test_both_settings_score_alike_on_pseudo_labels_equal_to_gt(wm_overrides, converted, tmp_path):
+    run = tmp_path / "run"
+    train(compose_cfg([*wm_overrides, *POSE, f"run_dir={run}", "trainer.max_steps=2",
+                       "trainer.val_every=0"]))  # fmt: skip
+    ckpt = run / "checkpoints" / "last.pt"
+    same = base._pseudo_labels(converted, tmp_path / "same", free=False)
+    m = evaluate(compose_cfg([*wm_overrides, f"ckpt={ckpt}", f"run_dir={tmp_path / 'a'}",
+                              f"pseudo_labels={same}", f"camera_ckpt={ckpt}"], "eval"))  # fmt: skip
+    scored = [k for k in m if k.startswith("val/model") and "/" in k[4:]]
+    assert "val/model_warp/miou_1s" in scored and "val/camera/model_net/miou_1s" in m
+    for k in scored:
+        assert m[f"val/camera/{k[4:]}"] == pytest.approx(m[k], rel=1e-9, nan_ok=True), k
+
+
+def test_trains_in_the_camera_setting(wm_overrides, converted, tmp_path):
+    labels = base._pseudo_labels(converted, tmp_path / "pseudo", free=False)
+    metrics = train(compose_cfg([*wm_overrides, *POSE, f"run_dir={tmp_path / 'run'}",
+                                 f"stage.occ_root={labels}", "trainer.max_steps=2",
+                                 "trainer.val_every=2"]))  # fmt: skip
+    assert math.isfinite(metrics["val/model/miou_1s"]) and math.isfinite(metrics["val/l2"])

@@ -1,0 +1,147 @@
+"""Pose-aware forecasting pieces: pose algebra, history alignment, BEV, pose head, loss."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from renderworld.constants import COMMANDS, FREE_ID, GridSpec
+from renderworld.world import WorldModelConfig, constant_turn_rate_poses
+from renderworld.world.pose import (
+    BEV_GROUPS,
+    PoseHead,
+    PoseWarpWorldModel,
+    align_history,
+    bev_channels,
+    invert_poses,
+    pose_loss,
+)
+
+GRID = GridSpec("test", (-4.0, -4.0, 0.0), (4.0, 4.0, 2.0), (8, 8, 2))
+
+
+def test_invert_poses_round_trip_and_by_hand():
+    p = torch.tensor([[2.0, 0.0, math.pi / 2]])
+    # Frame B sits 2 m ahead of A, turned left 90 deg: A's origin, (-2, 0) from B in A's axes,
+    # is R(-90) (-2, 0) = (0, 2) in B's axes (on B's left), and A's heading is -90 deg there.
+    torch.testing.assert_close(invert_poses(p), torch.tensor([[0.0, 2.0, -math.pi / 2]]))
+    q = torch.tensor([[1.5, -0.7, 0.3], [-2.0, 4.0, -2.5]], dtype=torch.float64)
+    torch.testing.assert_close(invert_poses(invert_poses(q)), q)
+    with pytest.raises(ValueError, match=r"poses: expected \[\.\.\., 3\]"):
+        invert_poses(torch.zeros(2, 2))
+
+
+def test_align_history_rotates_a_past_frame_into_the_current_one():
+    occ = torch.full((1, 2, *GRID.shape), FREE_ID, dtype=torch.uint8)
+    occ[0, 0, 6, 4, 0] = 4  # frame t-1: a car 2.5 m ahead (centre (2.5, 0.5))
+    occ[0, 1, 1, 1, 1] = 15  # the current frame: left alone
+    poses = torch.tensor([[[0.0, 0.0, math.pi / 2], [0.0, 0.0, 0.0]]])  # t-1 faced left of now
+    out = align_history(occ, poses, GRID)
+    # In the current frame the car is at R(90) (2.5, 0.5) = (-0.5, 2.5): voxel (3, 6).
+    assert out[0, 0, 3, 6, 0] == 4 and (out[0, 0] == 4).sum() == 1
+    assert torch.equal(out[0, 1], occ[0, 1])
+    with pytest.raises(ValueError, match="occupancy/history_poses: expected"):
+        align_history(occ, poses[:, :1], GRID)
+
+
+def test_bev_channels_collapse_z_by_group():
+    occ = torch.full((1, *GRID.shape), FREE_ID, dtype=torch.uint8)
+    occ[0, 2, 3, 1] = 11  # road
+    occ[0, 5, 5, 0] = 4  # car -> objects channel
+    bev = bev_channels(occ)
+    assert bev.shape == (1, len(BEV_GROUPS), 8, 8)
+    assert bev[0, 0, 2, 3] == 1 and bev[0, 0].sum() == 1
+    assert bev[0, -1, 5, 5] == 1 and bev[0, -1].sum() == 1 and bev[0, 1:-1].sum() == 0
+    with pytest.raises(ValueError, match=r"occupancy: expected a \[B, X, Y, Z\] tensor"):
+        bev_channels(occ[0])
+
+
+def _history(b=2, h=3):
+    hist = torch.zeros(b, h, 3)
+    hist[:, :, 0] = torch.arange(-(h - 1), 1, dtype=torch.float32) * 4.0  # 4 m per step
+    hist[1, :, 2] = torch.tensor([-0.2, -0.1, 0.0])  # turning left
+    return hist
+
+
+def test_pose_head_starts_at_constant_turn_rate_and_the_command_selects_a_mode():
+    head = PoseHead(history=3, steps=4)
+    hist, cmd = _history(), torch.tensor([0, 2])
+    bev = torch.zeros(2, len(BEV_GROUPS), 8, 8)
+    poses, modes = head(hist, cmd, bev)
+    assert poses.shape == (2, 4, 3) and modes.shape == (2, len(COMMANDS), 4, 3)
+    torch.testing.assert_close(poses, constant_turn_rate_poses(hist.double(), 4).float())
+    with torch.no_grad():
+        head.mlp[-1].bias.copy_(torch.arange(len(COMMANDS) * 4 * 3, dtype=torch.float32))
+    poses, modes = head(hist, cmd, bev)
+    for i, c in enumerate(cmd.tolist()):
+        torch.testing.assert_close(poses[i], modes[i, c])
+    assert not torch.allclose(modes[:, 0], modes[:, 1])
+    with pytest.raises(ValueError, match=r"history_poses: expected \[B, 3, 3\]"):
+        head(hist[:, :2], cmd, bev)
+    with pytest.raises(ValueError, match="command: expected int64"):
+        head(hist, cmd.float(), bev)
+
+
+def test_pose_loss_by_hand():
+    gt = torch.zeros(1, 2, 3)
+    pred = torch.tensor([[[3.0, 4.0, 0.1], [0.0, 0.0, 2 * math.pi - 0.2]]])
+    out = pose_loss(pred, gt, yaw_weight=5.0)
+    assert out["pose_l2"].item() == pytest.approx(2.5, abs=1e-5)  # (5 + 0) / 2
+    assert out["pose_yaw"].item() == pytest.approx(0.15, abs=1e-5)  # wrapped: (0.1 + 0.2) / 2
+    assert out["pose"].item() == pytest.approx(2.5 + 0.75, abs=1e-5)
+    masked = pose_loss(pred, gt, torch.tensor([[True, False]]))
+    assert masked["pose_l2"].item() == pytest.approx(5.0, abs=1e-5)
+    with pytest.raises(ValueError, match="pred/gt: expected equal"):
+        pose_loss(pred, gt[:, :1])
+
+
+def test_pose_warp_model_scores_the_future_frames_with_a_bonus_on_the_warped_code():
+    cfg = WorldModelConfig(codebook_sizes=(16,), token_grid=(4, 4), embed_dim=16, num_heads=2,
+                           num_scales=1, layers_per_scale=(1,), history_frames=3,
+                           future_frames=2)  # fmt: skip
+    model = PoseWarpWorldModel(cfg, copy_bonus=0.0).eval()
+    tokens = torch.randint(0, 16, (2, 4, 1, 4, 4))  # 2 aligned history + 2 warped frames
+    poses = torch.zeros(2, 4, 3)
+    cmd = torch.tensor([1, 2])
+    base = model(tokens, poses, cmd)
+    assert len(base) == 1 and base[0].shape == (2, 2, 16, 4, 4)
+    with torch.no_grad():
+        model.copy_bonus.fill_(3.0)
+    bumped = model(tokens, poses, cmd)[0]
+    diff = bumped - base[0]  # +3 exactly at each warped frame's own code
+    onehot = torch.nn.functional.one_hot(tokens[:, 2:, 0], 16).permute(0, 1, 4, 2, 3).float()
+    torch.testing.assert_close(diff, 3.0 * onehot)
+    occ = torch.full((2, *GRID.shape), FREE_ID, dtype=torch.uint8)
+    p, _ = model.predict_poses(_history(), cmd, occ)
+    assert p.shape == (2, 2, 3) and torch.isfinite(p).all()
+
+
+def test_pose_loss_step_weights():
+    gt = torch.zeros(1, 2, 3)
+    pred = torch.tensor([[[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]]])
+    assert pose_loss(pred, gt)["pose_l2"].item() == pytest.approx(2.0, abs=1e-5)
+    near = pose_loss(pred, gt, step_weights=torch.tensor([3.0, 1.0]))
+    assert near["pose_l2"].item() == pytest.approx((3 * 1 + 1 * 3) / 4, abs=1e-5)
+    with pytest.raises(ValueError, match=r"step_weights: expected \[2\]"):
+        pose_loss(pred, gt, step_weights=torch.ones(3))
+
+
+def test_pose_head_ctr_cv_anchors_blend_and_saturate():
+    head = PoseHead(history=3, steps=4, anchors="ctr_cv")
+    hist, cmd = _history(), torch.tensor([2, 2])
+    bev = torch.zeros(2, len(BEV_GROUPS), 8, 8)
+    ctr = constant_turn_rate_poses(hist.double(), 4).float()
+    still = hist.clone()
+    still[:, :, 2] = 0
+    cv = constant_turn_rate_poses(still.double(), 4).float()
+    poses, _ = head(hist, cmd, bev)
+    torch.testing.assert_close(poses, 0.5 * ctr + 0.5 * cv)  # half each at initialisation
+    with torch.no_grad():  # the CTR logit of every mode and step far negative: pure CV
+        head.mlp[-1].bias.view(len(COMMANDS), 4, 4)[..., 3] = -50.0
+    poses, _ = head(hist, cmd, bev)
+    torch.testing.assert_close(poses, cv)
+    assert cv[1, :, 2].abs().max() == 0 and ctr[1, :, 2].abs().max() > 0  # they differ
+    with pytest.raises(ValueError, match="anchors: expected one of"):
+        PoseHead(history=3, steps=4, anchors="cv")
