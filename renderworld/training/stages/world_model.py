@@ -30,13 +30,10 @@ one pass and one table (see
 
 from __future__ import annotations
 
-import warnings
-from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import OmegaConf
 from torch import nn
 from torch.utils.data import ConcatDataset, Dataset
 
@@ -44,17 +41,14 @@ from renderworld.data import load_infos
 from renderworld.metrics import PlanningMetric
 from renderworld.precision import autocast_off
 from renderworld.tokenizer import SceneTokenizer, Tokens
-from renderworld.training.checkpoint import CheckpointError, load_checkpoint
 from renderworld.training.registry import Stage, register_stage, sum_count
 from renderworld.training.stages import world_model_eval as wme
 from renderworld.training.stages import world_model_pose as wmp
 from renderworld.training.stages.common import grid_of, infos_dir
-from renderworld.training.stages.tokenizer import load_tokenizer
 from renderworld.training.stages.world_model_bundle import TOKENIZER_KIND, export_planner_bundle
+from renderworld.training.stages.world_model_models import CheckpointModels
 from renderworld.training.stages.world_model_settings import (
     EvalSetting,
-    build_world_model,
-    check_same_tokenizer,
     eval_settings,
     extra_train_roots,
     forecaster_of,
@@ -63,9 +57,8 @@ from renderworld.training.stages.world_model_settings import (
     stage_settings,
     world_model_config,
 )
+from renderworld.training.stages.world_model_tokens import FrozenTokenizers
 from renderworld.world import (
-    WorldModel,
-    WorldModelConfig,
     constant_turn_rate_poses,
     constant_velocity_trajectory,
     copy_paste_forecast,
@@ -83,11 +76,8 @@ __all__ = [
 ]
 
 
-_ENCODE_CHUNK = 16  # frames per tokenizer call (bounds memory on the Occ3D grid)
-
-
 @register_stage("world_model")
-class WorldModelStage(Stage):
+class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
     """World model on frozen tokenizer codes (see the module docstring)."""
 
     def __init__(self, cfg: Any) -> None:
@@ -113,184 +103,7 @@ class WorldModelStage(Stage):
         extra = wmp.POSE_METHODS if self.forecaster == "pose_warp" else ()
         return tuple(m for m in wme.FORECASTERS if m not in wmp.POSE_METHODS or m in extra)
 
-    # ------------------------------------------------------------------ tokenizer
-    @property
-    def tokenizer(self) -> SceneTokenizer:
-        """The frozen tokenizer (loaded once from ``stage.tokenizer_ckpt``, eval mode)."""
-        return self.tokenizer_of(None)
-
-    def tokenizer_of(self, path: str | None) -> SceneTokenizer:
-        """The frozen tokenizer of checkpoint ``path`` (None = ``stage.tokenizer_ckpt``).
-
-        ``path`` is a setting's own tokenizer (``camera_tokenizer_ckpt``); loaded once, eval mode.
-        """
-        key_name = "stage.tokenizer_ckpt" if path is None else "camera_tokenizer_ckpt"
-        path = self.settings.tokenizer_ckpt if path is None else str(path)
-        if path not in self._tokenizers:
-            try:
-                tok = load_tokenizer(path, "cpu")
-            except CheckpointError as err:
-                raise CheckpointError(f"{key_name}: {err}") from err
-            if tuple(tok.cfg.grid_shape) != tuple(self.grid.shape):
-                raise ValueError(
-                    f"{key_name}: the tokenizer {path!r} was trained on a "
-                    f"{tuple(tok.cfg.grid_shape)} grid, this run uses grid {self.grid.name!r} "
-                    f"{tuple(self.grid.shape)}; pass grid=<the tokenizer's grid>"
-                )
-            self._tokenizers[path] = tok
-        return self._tokenizers[path]
-
-    def _tokenizer_on(self, device: torch.device, path: str | None = None) -> SceneTokenizer:
-        tok = self.tokenizer_of(path)
-        if next(tok.parameters()).device != device:
-            key = self.settings.tokenizer_ckpt if path is None else str(path)
-            self._tokenizers[key] = tok = tok.to(device)
-        return tok
-
-    @torch.no_grad()
-    def window_tokens(
-        self,
-        batch: dict,
-        frames: int,
-        device: torch.device,
-        inputs: str = "occ",
-        source: str | None = None,
-        tokenizer: str | None = None,
-    ) -> torch.Tensor:
-        """Codes [B, frames, G, h, w] int64 on ``device`` of a batch's first ``frames`` frames.
-
-        Args:
-            inputs: batch key of the occupancy to encode (``"occ"`` or ``"occ_target"``).
-            source: name of that occupancy's source (cache key with the sample token);
-                default: the run's ``stage.occ_root`` or ``"gt"``.
-            tokenizer: checkpoint of the tokenizer that encodes them (a setting's own);
-                default: ``stage.tokenizer_ckpt``.
-
-        Frames already encoded (same tokenizer, source and sample token) come from the in-memory
-        cache.
-        """
-        occ = batch[inputs]
-        b = occ.shape[0]
-        if source is None:
-            source = str(self.cfg.stage.get("occ_root") or "gt")
-        tok_key = self.settings.tokenizer_ckpt if tokenizer is None else str(tokenizer)
-        keys = [
-            [(tok_key, source, k) for k in row[:frames]]
-            for row in wme.frame_keys(batch, b, occ.shape[1])
-        ]
-        tok = self._tokenizer_on(device, tokenizer)
-        cache = self._codes if self.settings.cache_tokens else {}
-        todo: dict[tuple[str, str, str], tuple[int, int]] = {}
-        for i, row in enumerate(keys):
-            for j, key in enumerate(row):
-                if key not in cache and key not in todo:
-                    todo[key] = (i, j)
-        names, where = list(todo), list(todo.values())
-        for c in range(0, len(names), _ENCODE_CHUNK):
-            chunk = where[c : c + _ENCODE_CHUNK]
-            x = torch.stack([occ[i, j] for i, j in chunk]).to(device)
-            with autocast_off():  # the frozen tokenizer's codes in float32 on every device
-                idx = tok.encode(x).indices
-            store = torch.int16 if max(tok.cfg.codebook_sizes) <= 2**15 else torch.int32
-            for key, codes in zip(names[c : c + _ENCODE_CHUNK], idx.to("cpu", store)):
-                cache[key] = codes
-        codes = torch.stack([torch.stack([cache[k] for k in row]) for row in keys])
-        return codes.to(device).long()
-
     # ------------------------------------------------------------------ Stage API
-    def build_model(self, cfg: Any) -> nn.Module:
-        """The world model; when evaluating (``ckpt`` set) its architecture is the checkpoint's.
-
-        ``stage.model`` keys that differ from the checkpoint's are taken from it with a warning
-        (they are architecture only); a different ``stage.history`` / ``stage.future`` is an
-        error (they define the evaluation protocol and the model's window).
-        """
-        mine = world_model_config(cfg, self.tokenizer.cfg)
-        ckpt = cfg.get("ckpt") if cfg.get("task") == "eval" else None
-        if not ckpt or not Path(str(ckpt)).is_file():
-            return build_world_model(self.forecaster, mine, cfg)
-        stored = load_checkpoint(ckpt, expected_stage="world_model")["config"]
-        self.forecaster = forecaster_of(OmegaConf.create(stored))
-        model = self._model_of_checkpoint(ckpt, mine, "ckpt")
-        for s in self.eval_settings:
-            if s.ckpt:  # the Camera setting's own model (camera_ckpt), loaded strictly
-                self.setting_models[s.key] = self._load_setting_model(s, cfg)
-            elif s.tokenizer:  # the ckpt model on the setting's own tokenizer's codes
-                self._check_tokenizer_fits(model.config, s, "ckpt")
-                stored = OmegaConf.create(
-                    load_checkpoint(ckpt, expected_stage="world_model")["config"]
-                )
-                check_same_tokenizer(stored, s.tokenizer, "camera_tokenizer_ckpt")
-        return model
-
-    def _check_tokenizer_fits(self, wm: WorldModelConfig, s: EvalSetting, what: str) -> None:
-        """ValueError when setting ``s``'s tokenizer does not give the codes model ``wm`` reads."""
-        tc = self.tokenizer_of(s.tokenizer).cfg
-        got = (tuple(tc.codebook_sizes), tuple(tc.latent_shape))
-        want = (tuple(wm.codebook_sizes), tuple(wm.token_grid))
-        if got != want:
-            raise ValueError(
-                f"camera_tokenizer_ckpt: {s.tokenizer!r} has codebooks {got[0]} on a {got[1]} "
-                f"latent grid, the {what} world model reads {want[0]} on {want[1]}"
-            )
-
-    def _load_setting_model(self, s: EvalSetting, cfg: Any) -> nn.Module:
-        from renderworld.training.checkpoint import check_state_dict_keys
-
-        ckpt = str(s.ckpt)
-        mine = world_model_config(cfg, self.tokenizer_of(s.tokenizer).cfg)
-        model = self._model_of_checkpoint(ckpt, mine, "camera_ckpt", s.tokenizer)
-        state = load_checkpoint(ckpt, expected_stage="world_model")["model"]
-        check_state_dict_keys(model, state, source=f"camera_ckpt {ckpt!r}")
-        model.load_state_dict(state, strict=True)
-        return model.eval()
-
-    def _model_of_checkpoint(
-        self, ckpt: Any, mine: WorldModelConfig, what: str, tokenizer: str | None = None
-    ) -> WorldModel:
-        """A world model with the architecture stored in ``ckpt`` (checked against ``mine``).
-
-        ``tokenizer``: checkpoint of the tokenizer it runs on (None = ``stage.tokenizer_ckpt``);
-        a warning when the model was trained on another file.
-        """
-        try:
-            stored = load_checkpoint(ckpt, expected_stage="world_model")["config"]
-        except CheckpointError as err:
-            raise CheckpointError(f"{what}: {err}") from err
-        stored = OmegaConf.create(stored)
-        if tokenizer is None:
-            check_same_tokenizer(stored, self.settings.tokenizer_ckpt)
-        else:
-            check_same_tokenizer(stored, tokenizer, "camera_tokenizer_ckpt")
-        theirs = world_model_config(stored, self.tokenizer_of(tokenizer).cfg)
-        diff = [
-            f.name
-            for f in fields(WorldModelConfig)
-            if getattr(mine, f.name) != getattr(theirs, f.name)
-        ]
-        for key, name in (("history_frames", "history"), ("future_frames", "future")):
-            if key in diff:
-                raise ValueError(
-                    f"stage.{name}: the checkpoint {str(ckpt)!r} ({what}) was trained with "
-                    f"{getattr(theirs, key)}, this run has {getattr(mine, key)}; pass "
-                    f"stage.{name}={getattr(theirs, key)}"
-                )
-        if diff:
-            warnings.warn(
-                "stage.model: "
-                + ", ".join(f"{k}={getattr(theirs, k)} (not {getattr(mine, k)})" for k in diff)
-                + f" taken from the checkpoint {str(ckpt)!r}",
-                UserWarning,
-                stacklevel=2,
-            )
-        kind = forecaster_of(stored)
-        if kind != self.forecaster:
-            raise ValueError(
-                f"{what}: {str(ckpt)!r} is a stage.forecaster={kind!r} model, the evaluated "
-                f"model is {self.forecaster!r}; both settings need the same forecaster"
-            )
-        return build_world_model(kind, theirs, stored)
-
     def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
         _ = self.tokenizer  # a wrong stage.tokenizer_ckpt fails before any data is read
         folder = infos_dir(cfg)
