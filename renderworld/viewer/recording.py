@@ -147,17 +147,8 @@ def write_scene_recording(
 
     t0 = time.perf_counter()
     say = log or (lambda _msg: None)
-    wanted = _check_layers(layers)
-    if gaussians not in GAUSSIAN_MODES:
-        raise ValueError(f"gaussians: expected one of {GAUSSIAN_MODES}, got {gaussians!r}")
-    if voxels not in ("surface", "all"):
-        raise ValueError(f"voxels: expected 'surface' or 'all', got {voxels!r}")
+    wanted, out = _check_options(layers, gaussians, voxels, occ_mask, out)
     surface = voxels == "surface"
-    if occ_mask not in ("none", "camera", "lidar"):
-        raise ValueError(f"occ_mask: expected 'none', 'camera' or 'lidar', got {occ_mask!r}")
-    out = Path(out)
-    if out.suffix != ".rrd":
-        raise ValueError(f"out: expected a .rrd file name, got {str(out)!r}")
     reader = reader or NuScenesReader(data_root, version)
     scene = scene or reader.scene_names()[0]
     frames = scene_frames(reader, scene, start=start, max_frames=max_frames)
@@ -181,40 +172,13 @@ def write_scene_recording(
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.{uuid.uuid4().hex[:8]}.tmp.rrd"
     rec = rr.RecordingStream("renderworld", recording_id=f"{frames.scene}-{uuid.uuid4().hex[:8]}")
-    instances: dict[str, int] = {}
-    missing: dict[str, int] = {}
     try:
         rec.save(tmp, default_blueprint=blueprint)
         rec.log("/", rr.TextDocument(f"RenderWorld scene {frames.scene}"), static=True)
         dl.log_static(rec, rr)
-        data_fns = {
-            "ego": lambda i: {"world/ego/box": dl.log_ego(rec, rr, frames, i)},
-            "cameras": lambda i: {"world/ego/cameras": dl.log_cameras(rec, rr, reader, frames, i)},
-            "lidar": lambda i: {"world/ego/lidar": dl.log_lidar(rec, rr, reader, frames, i)},
-            "gt_occupancy": lambda i: {
-                "world/ego/occupancy/gt": dl.log_gt_occupancy(
-                    rec, rr, reader, frames, i, occ_mask, surface
-                )
-            },
-            "agents": lambda i: {"world/agents": dl.log_agents(rec, rr, reader, frames, i)},
-        }
-        for i in range(len(frames)):
-            rec.set_time("frame", sequence=frames.first_index + i)
-            rec.set_time("time", timestamp=float(frames.timestamps_us[i]) * 1e-6)
-            # Every ego-frame layer hangs below the ego pose, so it is logged whatever is shown.
-            rec.log("world/ego", transform(rr, frames.ego_to_world[i]))
-            counts: dict[str, int] = {}
-            for name in wanted:
-                if name in data_fns:
-                    counts.update(data_fns[name](i))
-            for layer in models.values():
-                counts.update(layer.log(rec, rr, frames, i))
-            for k, v in counts.items():
-                if v >= 0:
-                    instances[k] = instances.get(k, 0) + v
-                else:  # -1: the keyframe has no input file for this layer (Occ3D GT)
-                    missing[k] = missing.get(k, 0) + 1
-            say(f"viewer: keyframe {i + 1}/{len(frames)} of {frames.scene}")
+        instances, missing = _log_frames(
+            rec, rr, reader, frames, wanted, models, occ_mask, surface, say
+        )
         rec.flush()
         rec.disconnect()
         os.replace(tmp, out)
@@ -280,3 +244,57 @@ def _model_layers(wanted, skip, scene, data_root, version, infos_dir, models, re
         except ValueError as err:  # missing inputs: 2-D labels, GT files, a too short scene
             skip(m, str(err))
     return built
+
+
+def _check_options(layers, gaussians: str, voxels: str, occ_mask: str, out) -> tuple[list, Path]:
+    """The wanted layers and the output path; ValueError naming a bad argument."""
+    wanted = _check_layers(layers)
+    if gaussians not in GAUSSIAN_MODES:
+        raise ValueError(f"gaussians: expected one of {GAUSSIAN_MODES}, got {gaussians!r}")
+    if voxels not in ("surface", "all"):
+        raise ValueError(f"voxels: expected 'surface' or 'all', got {voxels!r}")
+    if occ_mask not in ("none", "camera", "lidar"):
+        raise ValueError(f"occ_mask: expected 'none', 'camera' or 'lidar', got {occ_mask!r}")
+    out = Path(out)
+    if out.suffix != ".rrd":
+        raise ValueError(f"out: expected a .rrd file name, got {str(out)!r}")
+    return wanted, out
+
+
+def _log_frames(rec, rr, reader, frames, wanted, models, occ_mask, surface, say):
+    """Log every keyframe's data and model layers; (instances per entity, keyframes missing).
+
+    Returns:
+        ``({entity: instances over all keyframes}, {entity: keyframes without an input file})``.
+    """
+    instances: dict[str, int] = {}
+    missing: dict[str, int] = {}
+    data_fns = {
+        "ego": lambda i: {"world/ego/box": dl.log_ego(rec, rr, frames, i)},
+        "cameras": lambda i: {"world/ego/cameras": dl.log_cameras(rec, rr, reader, frames, i)},
+        "lidar": lambda i: {"world/ego/lidar": dl.log_lidar(rec, rr, reader, frames, i)},
+        "gt_occupancy": lambda i: {
+            "world/ego/occupancy/gt": dl.log_gt_occupancy(
+                rec, rr, reader, frames, i, occ_mask, surface
+            )
+        },
+        "agents": lambda i: {"world/agents": dl.log_agents(rec, rr, reader, frames, i)},
+    }
+    for i in range(len(frames)):
+        rec.set_time("frame", sequence=frames.first_index + i)
+        rec.set_time("time", timestamp=float(frames.timestamps_us[i]) * 1e-6)
+        # Every ego-frame layer hangs below the ego pose, so it is logged whatever is shown.
+        rec.log("world/ego", transform(rr, frames.ego_to_world[i]))
+        counts: dict[str, int] = {}
+        for name in wanted:
+            if name in data_fns:
+                counts.update(data_fns[name](i))
+        for layer in models.values():
+            counts.update(layer.log(rec, rr, frames, i))
+        for k, v in counts.items():
+            if v >= 0:
+                instances[k] = instances.get(k, 0) + v
+            else:  # -1: the keyframe has no input file for this layer (Occ3D GT)
+                missing[k] = missing.get(k, 0) + 1
+        say(f"viewer: keyframe {i + 1}/{len(frames)} of {frames.scene}")
+    return instances, missing
