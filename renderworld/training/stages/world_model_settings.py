@@ -27,6 +27,7 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from renderworld.constants import FUTURE_FRAMES
+from renderworld.data.table_cache import default_cache_root
 from renderworld.world import WorldModel, WorldModelConfig
 from renderworld.world.pose import ANCHORS, PoseWarpWorldModel
 
@@ -283,14 +284,16 @@ def extra_train_roots(cfg: Any) -> list[tuple[Path, Path]]:
 def frame_cache_dir(cfg: Any) -> Path | None:
     """Folder of the on-disk frame cache of ``stage.frame_cache``.
 
-    ``true``: ``<dataset.data_root>/renderworld_cache/frames``; a string: that folder;
-    ``false`` / null: no cache.
+    ``true``: ``frames/`` under the package's cache root (``$RENDERWORLD_CACHE_DIR`` or
+    ``~/.cache/renderworld``; entries are keyed by the file's path, so datasets never collide and
+    a read-only dataset folder is never written); a string: that folder; ``false`` / null: no
+    cache.
     """
     value = cfg.stage.get("frame_cache")
     if value is None or value is False:
         return None
     if value is True:
-        return Path(str(cfg.dataset.data_root)) / "renderworld_cache" / "frames"
+        return default_cache_root() / "frames"
     if isinstance(value, str) and value:
         return Path(value)
     raise ValueError(f"stage.frame_cache: expected true, false, null or a folder, got {value!r}")
