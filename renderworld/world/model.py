@@ -21,7 +21,7 @@ motion from frame ``i`` to ``i + 1``), made from frames ``<= i`` only.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -29,7 +29,9 @@ from torch import nn
 
 from renderworld.constants import COMMANDS
 from renderworld.world.blocks import Downsample, EgoTemporalBlock, SceneBlock, UpFuse
+from renderworld.world.cache import WorldModelCache
 from renderworld.world.config import WorldModelConfig
+from renderworld.world.rollout import RolloutOutput, rollout
 
 __all__ = [
     "NUM_EGO_FEATURES",
@@ -57,21 +59,6 @@ class WorldModelOutput:
     logits: list[torch.Tensor]
     displacement: torch.Tensor
     displacement_modes: torch.Tensor
-
-
-@dataclass
-class WorldModelCache:
-    """Keys/values of the frames already processed (the rollout's KV cache).
-
-    Attributes:
-        frames: number of leading frames whose features are cached.
-        scene: per scale, per block, the attention cache dict of that :class:`SceneBlock`.
-        ego: the cache dict of the ego temporal attention.
-    """
-
-    frames: int = 0
-    scene: list = field(default_factory=list)
-    ego: dict = field(default_factory=dict)
 
 
 def ego_features(
@@ -270,10 +257,8 @@ class WorldModel(nn.Module):
         command: torch.Tensor,
         steps: int | None = None,
         use_cache: bool = True,
-    ):
+    ) -> RolloutOutput:
         """Autoregressive forecast; see :func:`renderworld.world.rollout.rollout`."""
-        from renderworld.world.rollout import rollout
-
         return rollout(
             self,
             history_tokens,

@@ -8,7 +8,7 @@ feeds the GT future command during rollout, a leak; FACTS.md). The context keeps
 and 6 steps it never has to drop a frame.
 
 With ``use_cache`` (default) each step computes only the new frame, reusing the attention
-keys/values of earlier frames (:class:`renderworld.world.model.WorldModelCache`); the
+keys/values of earlier frames (:class:`renderworld.world.cache.WorldModelCache`); the
 reference is ``use_cache=False``, which recomputes the whole window every step. Once the
 context would exceed ``max_frames`` the window slides, positions shift, and the rollout falls
 back to recomputing.
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
-from renderworld.world.model import WorldModelCache
+from renderworld.world.cache import WorldModelCache
 
 __all__ = ["RolloutOutput", "rollout"]
 
