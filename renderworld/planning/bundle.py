@@ -253,10 +253,12 @@ def load_planner(
         sd = d["state_dict"]
         if not isinstance(sd, dict) or not all(isinstance(v, torch.Tensor) for v in sd.values()):
             raise ValueError(f"ckpt_path {path}: {where} state_dict: expected a dict of tensors")
-    try:
+    try:  # a registered builder may fail in any way on a config read from a file
         tokenizer = _REGISTRY[tok["kind"]].from_config(tok["config"])
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"ckpt_path {path}: tokenizer config refused: {err}") from err
+    except Exception as err:
+        raise ValueError(
+            f"ckpt_path {path}: tokenizer config refused: {type(err).__name__}: {err}"
+        ) from err
     try:
         world_model = WorldModel(WorldModelConfig.from_dict(wm["config"]))
     except (TypeError, ValueError) as err:
