@@ -28,6 +28,7 @@ bound the flipped fraction). Outputs are float32 unless the caller runs under ``
 from __future__ import annotations
 
 import math
+import weakref
 
 import torch
 import torch.nn.functional as F
@@ -50,10 +51,36 @@ def _nhwc(x: torch.Tensor) -> torch.Tensor:
     return x.permute(0, 2, 3, 1)
 
 
+class _Packed:
+    """Weights in the layout the fast kernels want, re-derived when a weight changes.
+
+    Keyed by the weight tensor (weak reference, so a replaced parameter is never confused with
+    a new one at the same address) and checked against its in-place version counter and data
+    pointer: ``load_state_dict`` or an optimizer step into the tokenizer invalidates the entry.
+    Without it, oneDNN re-orders every 3x3 weight to channels-last on every call.
+    """
+
+    def __init__(self) -> None:
+        self._entries: dict[tuple[int, str], tuple] = {}
+
+    def get(self, weight: torch.Tensor, tag: str, make) -> torch.Tensor:
+        key = (id(weight), tag)
+        stamp = (weight._version, weight.data_ptr(), weight.dtype, weight.device)
+        hit = self._entries.get(key)
+        if hit is not None and hit[0]() is weight and hit[1] == stamp:
+            return hit[2]
+        packed = make(weight)
+        drop = self._entries.pop  # the entry goes when the weight is freed
+        self._entries[key] = (weakref.ref(weight, lambda _: drop(key, None)), stamp, packed)
+        return packed
+
+
+_PACKED = _Packed()
+
+
 def _conv(x: torch.Tensor, conv: nn.Conv2d) -> torch.Tensor:
-    return F.conv2d(x, conv.weight, conv.bias, conv.stride, conv.padding).contiguous(
-        memory_format=_CL
-    )
+    w = _PACKED.get(conv.weight, "cl", lambda w: w.contiguous(memory_format=_CL))
+    return F.conv2d(x, w, conv.bias, conv.stride, conv.padding).contiguous(memory_format=_CL)
 
 
 def _gn(x: torch.Tensor, norm: nn.GroupNorm) -> torch.Tensor:
@@ -94,6 +121,12 @@ def _folded_taps(w: torch.Tensor, axis: int) -> tuple[torch.Tensor, torch.Tensor
     return torch.stack([t0, t1 + t2], axis), torch.stack([t0 + t1, t2], axis)
 
 
+def _phase_kernels(weight: torch.Tensor) -> torch.Tensor:
+    """[C_out, C_in, 3, 3] -> [4 * C_out, C_in, 2, 2]: phase (a, b) in block 2a + b."""
+    kernels = [wab for wa in _folded_taps(weight, 2) for wab in _folded_taps(wa, 3)]
+    return torch.cat(kernels).contiguous(memory_format=_CL)
+
+
 def _upsample_conv(x: torch.Tensor, up: _Upsample) -> torch.Tensor:
     """``conv3x3(nearest_up2(x))`` as one 2x2 convolution of ``x`` with 4x the output channels
     (one block per output phase), then interleaved (stride (2, 2), padding 1 only).
@@ -108,8 +141,8 @@ def _upsample_conv(x: torch.Tensor, up: _Upsample) -> torch.Tensor:
     n, _, h, w = x.shape
     weight, bias = up.conv.weight, up.conv.bias
     c_out = weight.shape[0]
-    kernels = [wab for wa in _folded_taps(weight, 2) for wab in _folded_taps(wa, 3)]
-    y = F.conv2d(x, torch.cat(kernels), None if bias is None else bias.repeat(4), padding=1)
+    kernel = _PACKED.get(weight, "up2", _phase_kernels)
+    y = F.conv2d(x, kernel, None if bias is None else bias.repeat(4), padding=1)
     y = _nhwc(y.contiguous(memory_format=_CL))  # [N, H+1, W+1, 4 * C_out]
     out = torch.empty(n, h, 2, w, 2, c_out, dtype=y.dtype, device=y.device)
     for a in range(2):

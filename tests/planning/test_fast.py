@@ -76,6 +76,15 @@ def test_codec_follows_new_weights_and_refuses_bad_input():
         tok.quantizers[0].codebook.copy_(torch.roll(tok.quantizers[0].codebook, 1, 0))
         torch.testing.assert_close(codec.encode(occ).indices, tok.encode(occ).indices)
         assert not torch.equal(codec.encode(occ).indices, before)
+        g = torch.Generator().manual_seed(3)
+        idx = torch.stack([torch.randint(0, k, (2, 8, 8), generator=g) for k in (16, 16)], 1)
+        tokens = Tokens(idx, tok.cfg.codebook_sizes, tok.cfg.codebook_names)
+        first = codec.decode(tokens)
+        for conv in (tok.decoder.conv_in, tok.decoder.blocks[-2].conv):  # 3x3 and up-sampling
+            conv.weight.mul_(-3.0)  # in place: cached re-packed weights must notice
+        second = codec.decode(tokens)
+        assert (second == tok.decode(tokens)).float().mean().item() >= 0.999
+        assert (second != first).any()
     with pytest.raises(TypeError, match="tokenizer: expected SceneTokenizer"):
         FastSceneCodec(torch.nn.Linear(1, 1))
     with pytest.raises(ValueError, match=r"occ: expected shape \[B, \(32, 32, 4\)\]"):
