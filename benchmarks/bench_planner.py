@@ -3,7 +3,7 @@
 Usage::
 
     PYTHONPATH=. python benchmarks/bench_planner.py [--device cpu] [--threads 2 1]
-        [--reps-mini 20] [--reps-occ3d 3] [--skip-occ3d] [--skip-mini]
+        [--reps-mini 20] [--reps-occ3d 3] [--skip-occ3d] [--skip-mini] [--profile-decoder]
         [--mini-tokenizer outputs/demo/tokenizer/checkpoints/best.pt]
         [--mini-world-model outputs/demo/world_model/checkpoints/best.pt]
 
@@ -172,6 +172,34 @@ def bench_case(models, grid, device: str, reps: int, all_modes: bool) -> dict[st
     }
 
 
+def profile_decoder(models, threads: int, rows: int = 12) -> None:
+    """torch.profiler tables of one six-frame decode, reference vs fast codec (CPU)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from renderworld.tokenizer.inference import FastSceneCodec
+    from renderworld.tokenizer.tokens import Tokens
+
+    torch.set_num_threads(threads)
+    tok = models[0].eval()
+    g = torch.Generator().manual_seed(0)
+    idx = torch.stack(
+        [
+            torch.randint(0, k, (6, *tok.cfg.latent_shape), generator=g)
+            for k in tok.cfg.codebook_sizes
+        ],
+        1,
+    )
+    tokens = Tokens(idx, tok.cfg.codebook_sizes, tok.cfg.codebook_names)
+    for name, decode in (("reference", tok.decode), ("fast", FastSceneCodec(tok).decode)):
+        with torch.inference_mode():
+            decode(tokens)
+            t0 = time.perf_counter()
+            with profile(activities=[ProfilerActivity.CPU]) as prof:
+                decode(tokens)
+        print(f"# {name} decode of 6 frames, {threads} thread(s): {time.perf_counter() - t0:.2f} s")
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=rows))
+
+
 def _describe_machine(device: str) -> str:
     if device.startswith("cuda"):
         return torch.cuda.get_device_name(device)
@@ -211,7 +239,14 @@ def main() -> None:
     ap.add_argument("--skip-occ3d", action="store_true")
     ap.add_argument("--skip-mini", action="store_true")
     ap.add_argument("--all-modes", action="store_true", help="also Planner(fast=True).plan")
+    ap.add_argument(
+        "--profile-decoder", action="store_true", help="only profile the Occ3D decoder (CPU)"
+    )
     args = ap.parse_args()
+    if args.profile_decoder:
+        print(f"# load average {os.getloadavg()[0]:.1f}, commit {_commit()}")
+        profile_decoder(occ3d_models(), args.threads[0])
+        return
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     print(
         f"# Planner latency (ms, medians of interleaved rounds after 1 warm-up round), batch 1, "

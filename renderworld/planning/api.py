@@ -135,7 +135,7 @@ class Planner:
                 self._compiled = None
         return self._decode_fn(tokens)
 
-    def plan_tokens(
+    def _plan_tokens(
         self,
         history_tokens: torch.Tensor,
         displacements: np.ndarray,
@@ -252,7 +252,7 @@ class Planner:
             tokens = self.encode(torch.from_numpy(occ).to(self.device).reshape(b * h, *grid))
             encode_ms = 1e3 * (self._sync() - t0)
         idx = tokens.indices.reshape(b, h, *tokens.indices.shape[1:])
-        return self.plan_tokens(idx, disp, [r.command for r in reqs], forecast, encode_ms)
+        return self._plan_tokens(idx, disp, [r.command for r in reqs], forecast, encode_ms)
 
     def _check_tokens(self, tokens, n: int) -> None:
         cfg = self.config

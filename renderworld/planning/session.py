@@ -121,7 +121,7 @@ class PlannerSession:
             raise TypeError(f"forecast: expected a bool, got {forecast!r}")
         history = torch.stack(list(self._tokens))[None]  # [1, H, G, h, w]
         encode_ms, self._last_encode_ms = self._last_encode_ms, 0.0
-        return self.planner.plan_tokens(
+        return self.planner._plan_tokens(
             history, disp.astype(np.float32)[None], [command], forecast, encode_ms
         )[0]
 

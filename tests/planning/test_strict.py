@@ -180,3 +180,10 @@ def test_planner_option_refusals():
         type(planner)(planner.tokenizer, planner.world_model, fast=1)
     with pytest.raises(TypeError, match="forecast: expected a bool"):
         planner.plan(make_request(), forecast=None)
+
+
+def test_load_planner_passes_options(bundle):
+    planner = load_planner(bundle, fast=False, precision="bfloat16")
+    assert planner.fast is False and planner.precision == "bfloat16"
+    with pytest.raises(ValueError, match="precision: expected one of"):
+        load_planner(bundle, precision="int8")
