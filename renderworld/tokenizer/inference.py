@@ -170,9 +170,10 @@ def _run_blocks(x: torch.Tensor, blocks: nn.Sequential) -> torch.Tensor:
 class FastSceneCodec:
     """Inference-only ``encode`` / ``decode`` of a :class:`SceneTokenizer`.
 
-    Reads the tokenizer's modules on every call (no copied weights: loading a new state dict
-    into the tokenizer is picked up). Never updates codebooks. Call under
-    ``torch.inference_mode()`` (the planner does).
+    Reads the tokenizer's modules on every call; weights it re-packs (channels-last, folded
+    up-sampling kernels) are cached and re-derived when a weight changes, so loading a new
+    state dict into the tokenizer is picked up. Never updates codebooks. Runs under
+    ``torch.inference_mode()`` (no autograd).
 
     Args:
         tokenizer: the :class:`SceneTokenizer` (any variant).
@@ -183,6 +184,7 @@ class FastSceneCodec:
             raise TypeError(f"tokenizer: expected SceneTokenizer, got {type(tokenizer).__name__}")
         self.tokenizer = tokenizer
 
+    @torch.inference_mode()
     def encode(self, occ: torch.Tensor) -> Tokens:
         """Occupancy [B, X, Y, Z] uint8 Occ3D ids -> :class:`Tokens` [B, G, h, w] (nearest codes).
 
@@ -204,6 +206,7 @@ class FastSceneCodec:
             idx.append(d.argmin(1).reshape(zl.shape[:3]))
         return tok._make_tokens(idx)
 
+    @torch.inference_mode()
     def decode(self, tokens: Tokens) -> torch.Tensor:
         """Tokens [..., G, h, w] -> occupancy [..., X, Y, Z] uint8 (the variant's decision rule).
 
