@@ -34,6 +34,8 @@ Rounds interleave the modes (one call of each per round) so that load from other
 a shared machine hits every mode alike; figures are medians over rounds after one warm-up
 round, per torch intra-op thread count. ``encode`` / ``world`` / ``decode`` are the planner's
 own stage timings (``PlanResult.timings``), ``wall`` the whole call (session: push + plan).
+OpenMP threads wait passively (``OMP_WAIT_POLICY=PASSIVE``) unless the environment says
+otherwise: spinning threads are several times slower on a busy shared CPU.
 """
 
 from __future__ import annotations
