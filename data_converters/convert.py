@@ -219,7 +219,19 @@ def create_data(
     scenes = [scene_frames(tables, name, i) for i, name in enumerate(names)]
     summary = ConvertSummary(out_dir=out_dir)
 
-    # Cameras of every keyframe (checks images exist and match their records).
+    cams = _all_camera_views(tables, scenes, opts)
+    if opts.labels:
+        _write_all_labels(tables, scenes, cams, out_dir, opts, summary)
+    commands = _write_infos_if_stale(
+        tables, scenes, cams, splits, out_dir, data_root, version, opts, summary
+    )
+    summary.commands = {c: commands.get(c, 0) for c in COMMANDS}
+    summary.seconds = time.perf_counter() - start
+    return summary
+
+
+def _all_camera_views(tables: TableIndex, scenes: list, opts: ConvertOptions) -> list[list]:
+    """Cameras of every keyframe, per scene (checks images exist and match their records)."""
     total = sum(len(s) for s in scenes)
     bar = tqdm(total=total, desc="cameras", disable=not opts.progress, unit="kf")
     cams = []
@@ -227,33 +239,46 @@ def create_data(
         cams.append([camera_views(tables, t, opts.label_size_fn) for t in frames.tokens])
         bar.update(len(frames))
     bar.close()
+    return cams
 
-    if opts.labels:
-        tasks = [
-            (si, fi, cams[si][fi][1], out_dir / _labels_relpath(frames.name, tok))
-            for si, frames in enumerate(scenes)
-            for fi, tok in enumerate(frames.tokens)
-        ]
-        _STATE.update(tables=tables, scenes=scenes, opts=opts)
-        bar = tqdm(total=len(tasks), desc="2-D labels", disable=not opts.progress, unit="kf")
-        try:
-            if opts.workers > 0 and len(tasks) > 1:
-                ctx = get_context("fork")
-                with ProcessPoolExecutor(opts.workers, mp_context=ctx) as pool:
-                    for _, wrote in pool.map(_labels_task, tasks, chunksize=4):
-                        summary.labels_written += wrote
-                        summary.labels_skipped += not wrote
-                        bar.update()
-            else:
-                for task in tasks:
-                    _, wrote = _labels_task(task)
+
+def _write_all_labels(tables, scenes, cams, out_dir: Path, opts, summary) -> None:
+    """2-D depth / semantic labels of every keyframe's cameras (skipping up-to-date files)."""
+    tasks = [
+        (si, fi, cams[si][fi][1], out_dir / _labels_relpath(frames.name, tok))
+        for si, frames in enumerate(scenes)
+        for fi, tok in enumerate(frames.tokens)
+    ]
+    _STATE.update(tables=tables, scenes=scenes, opts=opts)
+    bar = tqdm(total=len(tasks), desc="2-D labels", disable=not opts.progress, unit="kf")
+    try:
+        if opts.workers > 0 and len(tasks) > 1:
+            ctx = get_context("fork")
+            with ProcessPoolExecutor(opts.workers, mp_context=ctx) as pool:
+                results = pool.map(_labels_task, tasks, chunksize=4)
+                for _, wrote in results:
                     summary.labels_written += wrote
                     summary.labels_skipped += not wrote
                     bar.update()
-        finally:
-            _STATE.clear()
-            bar.close()
+        else:
+            for task in tasks:
+                _, wrote = _labels_task(task)
+                summary.labels_written += wrote
+                summary.labels_skipped += not wrote
+                bar.update()
+    finally:
+        _STATE.clear()
+        bar.close()
 
+
+def _write_infos_if_stale(
+    tables, scenes, cams, splits, out_dir: Path, data_root, version: str, opts, summary
+) -> Counter:
+    """Write the per-split infos unless the manifest's fingerprint says they are up to date.
+
+    Returns:
+        Keyframe count per driving command over all splits.
+    """
     fingerprint = _fingerprint(tables, scenes, opts, splits)
     manifest_path = out_dir / _MANIFEST
     split_names = sorted(set(splits.values()))
@@ -264,35 +289,32 @@ def create_data(
         and all(infos_file(out_dir, s).is_file() for s in old.get("splits", []))
         and set(old.get("splits", [])) == set(split_names)
     )
+    commands: Counter = Counter()
     if fresh:
-        commands = Counter()
         for s in split_names:
             df = load_infos(out_dir, s)
             summary.samples_per_split[s] = len(df)
             commands.update(df["command"].tolist())
-    else:
-        by_split: dict[str, list[dict]] = {s: [] for s in split_names}
-        for si, frames in enumerate(scenes):
-            rel = [_labels_relpath(frames.name, t) if opts.labels else "" for t in frames.tokens]
-            split = splits[frames.name]
-            by_split[split] += info_rows(tables, frames, split, cams[si], rel)
-        meta = {
-            "data_root": str(Path(data_root).resolve()),
-            "version": version,
-            "label_params": opts.label_params(),
-        }
-        commands = Counter()
-        for s, rows in by_split.items():
-            write_infos(rows, infos_file(out_dir, s), metadata=meta)
-            summary.samples_per_split[s] = len(rows)
-            commands.update(r["command"] for r in rows)
-        for stale in set(old.get("splits", [])) - set(split_names):
-            infos_file(out_dir, stale).unlink(missing_ok=True)
-        _write_json(manifest_path, {"fingerprint": fingerprint, "splits": split_names})
-        summary.infos_written = True
-    summary.commands = {c: commands.get(c, 0) for c in COMMANDS}
-    summary.seconds = time.perf_counter() - start
-    return summary
+        return commands
+    by_split: dict[str, list[dict]] = {s: [] for s in split_names}
+    for si, frames in enumerate(scenes):
+        rel = [_labels_relpath(frames.name, t) if opts.labels else "" for t in frames.tokens]
+        split = splits[frames.name]
+        by_split[split] += info_rows(tables, frames, split, cams[si], rel)
+    meta = {
+        "data_root": str(Path(data_root).resolve()),
+        "version": version,
+        "label_params": opts.label_params(),
+    }
+    for s, rows in by_split.items():
+        write_infos(rows, infos_file(out_dir, s), metadata=meta)
+        summary.samples_per_split[s] = len(rows)
+        commands.update(r["command"] for r in rows)
+    for stale in set(old.get("splits", [])) - set(split_names):
+        infos_file(out_dir, stale).unlink(missing_ok=True)
+    _write_json(manifest_path, {"fingerprint": fingerprint, "splits": split_names})
+    summary.infos_written = True
+    return commands
 
 
 def _write_json(path: Path, data: dict) -> None:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 __all__ = [
     "IGNORE_LABEL",
+    "SIM_VERSION",
     "OCC3D_CLASSES",
     "NUM_OCC3D_CLASSES",
     "NUM_SEMANTIC_CLASSES",
@@ -268,3 +269,6 @@ COMMANDS: tuple[str, ...] = ("left", "right", "straight")
 COMMAND_LATERAL_THRESHOLD: float = 2.0  # metres of lateral offset at 3 s
 EGO_LENGTH: float = 4.084  # metres
 EGO_WIDTH: float = 1.85  # metres
+
+#: The nuScenes version folder the simulated fixtures are written as (official mini names).
+SIM_VERSION: str = "v1.0-mini"

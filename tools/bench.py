@@ -3,7 +3,7 @@
     python tools/bench.py [bench=quick|full] [out=DIR] [overwrite=true] [data_root=DIR]
 
 Writes <out>/results.csv, results.md and pareto_<stage>.png (configs/bench.yaml explains each
-key; renderworld.training.bench how a point is run and measured).
+key; renderworld.bench.sweep how a point is run and measured).
 """
 
 import sys
@@ -16,7 +16,7 @@ if str(REPO) not in sys.path:
 import hydra  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from renderworld.training.bench_main import run_bench  # noqa: E402
+from renderworld.bench.main import run_bench  # noqa: E402
 
 
 @hydra.main(version_base="1.3", config_path="../configs", config_name="bench")

@@ -2,7 +2,7 @@
 
     python tools/run_pipeline.py [out=outputs/demo] [force=[tokenizer]] [train_overrides=[...]]
 
-Steps (each skipped when its inputs did not change; see renderworld.training.pipeline):
+Steps (each skipped when its inputs did not change; see renderworld.pipeline.runner):
 fixtures -> infos -> tokenizer (train, eval) -> img2occ (train, eval, pseudo labels)
 -> world model (train, eval) -> report.
 """
@@ -19,7 +19,7 @@ if str(REPO) not in sys.path:
 import hydra  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from renderworld.training.pipeline_main import run_main_job  # noqa: E402
+from renderworld.pipeline.main_job import run_main_job  # noqa: E402
 
 
 @hydra.main(config_path="../configs", config_name="pipeline", version_base=None)

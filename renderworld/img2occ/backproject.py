@@ -4,7 +4,7 @@ A label pixel with depth ``d`` and class ``k`` is a 3-D point ``d · K⁻¹ [u, 
 camera, i.e. a point of the LiDAR sweep it was projected from. Putting those points back
 into the voxel grid gives sparse voxel targets without any 3-D label: a voxel holding points
 is occupied, with their most frequent class; a voxel the depth maps see through is free
-(``renderworld.img2occ.carving.free_space_targets``). The loss on them is the "3d" voxel
+(:func:`free_space_targets`). The loss on them is the "3d" voxel
 loss (``occupancy_3d_loss``) restricted to those voxels. Rendering losses compare blended
 pixels only, so they leave the per-voxel opacity and class ambiguous (a half-transparent
 veil renders almost like a surface); these targets pin them where the 2-D labels say.
@@ -20,12 +20,16 @@ import math
 import torch
 
 from renderworld.constants import FREE_ID, NUM_SEMANTIC_CLASSES, OCC3D_CLASSES
-from renderworld.geometry import VoxelGrid
-from renderworld.img2occ.carving import free_space_targets
+from renderworld.geometry import VoxelGrid, invert_pose, project_points
 from renderworld.img2occ.depth_lift import occupancy_3d_loss
 from renderworld.img2occ.losses import balanced_class_weights
 
-__all__ = ["STATIC_CLASS_IDS", "backproject_labels", "backprojected_loss"]
+__all__ = [
+    "STATIC_CLASS_IDS",
+    "backproject_labels",
+    "backprojected_loss",
+    "free_space_targets",
+]
 
 #: Classes that do not move between keyframes: adjacent frames' points of these classes
 #: land where they are in the keyframe (the ego poses align them); a moving car's would not.
@@ -42,6 +46,55 @@ STATIC_CLASS_IDS: tuple[int, ...] = tuple(
         "vegetation",
     )
 )
+
+
+def free_space_targets(
+    centres: torch.Tensor,
+    cam_to_ego: torch.Tensor,
+    intrinsics: torch.Tensor,
+    depth: torch.Tensor,
+    margin: float,
+    near: float = 0.1,
+) -> torch.Tensor:
+    """Voxels seen free by at least one camera's LiDAR depth map and at no camera's surface.
+
+    Args:
+        centres: [V, 3] voxel centres, metres, ego frame.
+        cam_to_ego: [B, C, 4, 4] camera → ego transforms.
+        intrinsics: [B, C, 3, 3] intrinsics of the depth maps (pixels).
+        depth: [B, C, H, W] LiDAR depth maps, metres camera z (0 = no point).
+        margin: metres; free when ``z < d - margin``, surface when ``|z - d| <= margin``.
+        near: voxel centres at camera z <= near are not seen.
+
+    Returns:
+        [B, V] bool.
+    """
+    b, c, h, w = depth.shape
+    if cam_to_ego.shape != (b, c, 4, 4) or intrinsics.shape != (b, c, 3, 3):
+        raise ValueError(
+            f"cam_to_ego/intrinsics: expected [{b}, {c}, 4, 4] and [{b}, {c}, 3, 3], got "
+            f"{tuple(cam_to_ego.shape)} and {tuple(intrinsics.shape)}"
+        )
+    if not margin > 0:
+        raise ValueError(f"margin: expected > 0 metres, got {margin!r}")
+    dtype = torch.float32
+    centres = centres.to(device=depth.device, dtype=dtype)
+    ego_to_cam = invert_pose(cam_to_ego.to(device=depth.device, dtype=dtype))
+    free = torch.zeros(b, centres.shape[0], dtype=torch.bool, device=depth.device)
+    surface = torch.zeros_like(free)
+    for ci in range(c):
+        rot, trans = ego_to_cam[:, ci, :3, :3], ego_to_cam[:, ci, :3, 3]
+        pts = centres[None] @ rot.transpose(1, 2) + trans[:, None, :]  # [B, V, 3]
+        uv, z, ok = project_points(pts, intrinsics[:, ci].to(dtype), near=near)
+        col = uv[..., 0].floor().long()
+        row = uv[..., 1].floor().long()
+        ok = ok & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        flat = (row.clamp(0, h - 1) * w + col.clamp(0, w - 1)).view(b, -1)
+        d = depth[:, ci].reshape(b, -1).to(dtype).gather(1, flat)
+        hit = ok & (d > 0)
+        free |= hit & (z < d - margin)
+        surface |= hit & ((z - d).abs() <= margin)
+    return free & ~surface
 
 
 def backproject_labels(

@@ -34,8 +34,6 @@ _WEIGHTS = (
     "semantic_weight",
     "depth_weight",
     "depth_l1_weight",
-    "ray_weight",
-    "carve_weight",
     "backproject_weight",
     "adjacent_weight",
     "lift_depth_weight",
@@ -85,19 +83,8 @@ class Img2OccConfig:
             Pearson correlation is blind to an affine change of depth, so it cannot tell a
             veil of half-opaque "air" Gaussians in front of a surface from the surface itself;
             this term can (see the overfitting test).
-        ray_weight: weight of the ray-distribution loss, mean over LiDAR pixels of
-            ``sum_i w_i (z_i - d)^2 / d^2``: the blending weights w_i of the Gaussians along
-            the pixel's ray must sit at the LiDAR depth d (z_i: a Gaussian's camera z). Not
-            in the paper (0 = paper): expected-depth losses cannot see a semi-transparent
-            veil in front of a surface balanced by mass behind it, and this term removes
-            it (DS-NeRF's ray-distribution idea on the 2-D depth labels). Renders each
-            camera separately (two more feature channels).
-        carve_weight: weight of free-space carving, ``-log(1 - opacity)`` of voxels that
-            the keyframe cameras' LiDAR depth maps see as empty (centre more than
-            ``carve_margin`` in front of the pixel's LiDAR depth, and no camera sees the
-            voxel at its surface; ``renderworld.img2occ.carving``). Not in the paper (0 =
-            paper): rendered losses let half-transparent Gaussians fill seen free space.
-        carve_margin: metres (> 0), see ``carve_weight``.
+        carve_margin: metres (> 0): a voxel whose centre lies more than this in front of a
+            pixel's LiDAR depth is seen through, hence a free target of ``backproject_weight``.
         backproject_weight: weight of the voxel loss (opacity BCE + class CE) against the
             targets back-projected from the 2-D label maps (``renderworld.img2occ.
             backproject``): voxels holding labelled pixels' points are occupied with their
@@ -166,8 +153,6 @@ class Img2OccConfig:
     semantic_weight: float = 1.0
     depth_weight: float = 1.0
     depth_l1_weight: float = 0.0
-    ray_weight: float = 0.0
-    carve_weight: float = 0.0
     carve_margin: float = 1.6
     backproject_weight: float = 0.0
     backproject_adjacent: bool = False
@@ -193,6 +178,12 @@ class Img2OccConfig:
     semantic_3d_weight: float = 1.0
 
     def __post_init__(self) -> None:
+        self._check_network()
+        self._check_gaussians_and_rendering()
+        self._check_losses_and_options()
+
+    def _check_network(self) -> None:
+        """Grid, image sizes, encoder and head."""
         if isinstance(self.grid, str):
             self.grid = get_grid(self.grid)
         if not isinstance(self.grid, GridSpec):
@@ -225,6 +216,9 @@ class Img2OccConfig:
             raise ValueError(f"head_blocks: expected an int >= 0, got {self.head_blocks!r}")
         if self.timm_weights is not None and self.timm_backbone is None:
             raise ValueError("timm_weights: given without timm_backbone (name the timm model)")
+
+    def _check_gaussians_and_rendering(self) -> None:
+        """Gaussian parameters, pruning, views per step, clipping planes."""
         lo_hi = tuple(float(v) for v in self.scale_range)
         if len(lo_hi) != 2 or not (0 < lo_hi[0] < lo_hi[1]):
             raise ValueError(f"scale_range: expected 0 < s_min < s_max, got {self.scale_range!r}")
@@ -241,16 +235,19 @@ class Img2OccConfig:
             v = getattr(self, name)
             if v is not None:
                 _positive_int(name, v)
+        if not (0 < self.near < self.far):
+            raise ValueError(f"near/far: expected 0 < near < far, got {self.near}, {self.far}")
+        if not (self.lift_near > 0):
+            raise ValueError(f"lift_near: expected > 0 metres, got {self.lift_near!r}")
+
+    def _check_losses_and_options(self) -> None:
+        """Loss weights, depth-aware lifting, class balancing, back-projection, mirroring."""
         for name in _WEIGHTS:
             v = getattr(self, name)
             if not (math.isfinite(float(v)) and float(v) >= 0):
                 raise ValueError(f"{name}: expected a finite weight >= 0, got {v!r}")
         if not (math.isfinite(float(self.carve_margin)) and float(self.carve_margin) > 0):
             raise ValueError(f"carve_margin: expected > 0 metres, got {self.carve_margin!r}")
-        if not (0 < self.near < self.far):
-            raise ValueError(f"near/far: expected 0 < near < far, got {self.near}, {self.far}")
-        if not (self.lift_near > 0):
-            raise ValueError(f"lift_near: expected > 0 metres, got {self.lift_near!r}")
         if isinstance(self.depth_bins, bool) or not isinstance(self.depth_bins, int):
             raise ValueError(f"depth_bins: expected an int >= 0, got {self.depth_bins!r}")
         if self.depth_bins < 0 or self.depth_bins == 1:

@@ -80,33 +80,10 @@ def lift_features(
     Returns:
         :class:`LiftResult`.
     """
-    if features.ndim != 5:
-        raise ValueError(f"features: expected [B, C, D, h, w], got {tuple(features.shape)}")
+    _check_inputs(features, cam_to_ego, intrinsics, centres, depth_cdf, class_probs, edges, radius)
     b, c, d, h, w = features.shape
-    if cam_to_ego.shape != (b, c, 4, 4):
-        raise ValueError(f"cam_to_ego: expected {(b, c, 4, 4)}, got {tuple(cam_to_ego.shape)}")
-    if intrinsics.shape != (b, c, 3, 3):
-        raise ValueError(f"intrinsics: expected {(b, c, 3, 3)}, got {tuple(intrinsics.shape)}")
-    if centres.ndim != 2 or centres.shape[1] != 3:
-        raise ValueError(f"centres: expected [V, 3], got {tuple(centres.shape)}")
-    depth_aware = depth_cdf is not None
-    if depth_aware:
-        if edges is None or class_probs is None or not radius > 0:
-            raise ValueError("depth_cdf: needs class_probs, edges and a radius > 0 with it")
-        if depth_cdf.shape != (b, c, edges.numel(), h, w):
-            raise ValueError(
-                f"depth_cdf: expected {(b, c, edges.numel(), h, w)}, got {tuple(depth_cdf.shape)}"
-            )
-        if class_probs.ndim != 5 or class_probs.shape[:2] != (b, c):
-            raise ValueError(
-                f"class_probs: expected [{b}, {c}, K, {h}, {w}], got {tuple(class_probs.shape)}"
-            )
-        # class_probs may have its own resolution (a finer semantic map of the same image
-        # extent): it is then sampled on its own with the same normalised coordinates.
-        separate = class_probs.shape[3:] != (h, w)
-        n_edges, k = edges.numel(), class_probs.shape[2]
-        extra_sum = features.new_zeros(b, 2 + k, centres.shape[0])
     v = centres.shape[0]
+    depth_aware = depth_cdf is not None
     dtype = features.dtype
     centres = centres.to(device=features.device, dtype=dtype)
     ego_to_cam = invert_pose(cam_to_ego.to(dtype))
@@ -115,6 +92,8 @@ def lift_features(
     count = features.new_zeros(b, v)
     depth_sum = features.new_zeros(b, v)
     dir_sum = features.new_zeros(b, v, 3)
+    k = class_probs.shape[2] if depth_aware else 0
+    extra_sum = features.new_zeros(b, 2 + k, v) if depth_aware else None
     # One camera at a time: the [B, D, V] sample of one camera is the peak, not C of them
     # (640k voxels x 64 channels x 6 cameras would be ~1 GB per sample).
     for ci in range(c):
@@ -124,36 +103,14 @@ def lift_features(
         uv, z, _ = project_points(pts, intrinsics[:, ci].to(dtype), near=near)
         seen = (z > near) & (uv >= 0).all(-1) & (uv < size).all(-1)  # [B, V]
         grid = (2.0 * uv / size - 1.0).clamp(-2.0, 2.0)  # invisible ones are masked anyway
-        maps = features[:, ci]
-        if depth_aware:
-            parts = [maps, depth_cdf[:, ci].to(dtype)]
-            maps = torch.cat(parts if separate else [*parts, class_probs[:, ci].to(dtype)], 1)
-        sample = F.grid_sample(
-            maps,
-            grid[:, None],  # [B, 1, V, 2]
-            mode="bilinear",
-            padding_mode="border",
-            align_corners=False,
-        )[:, :, 0]  # [B, D, V] (+ D_bins + 1 + K)
         m = seen.to(dtype)
         if depth_aware:
-            cdf = sample[:, d : d + n_edges]
-            before = interp_cdf(cdf, edges, z - radius)  # surface before the voxel
-            mass = (interp_cdf(cdf, edges, z + radius) - before).clamp_min(0.0) * m
-            if separate:
-                probs = F.grid_sample(
-                    class_probs[:, ci].to(dtype),
-                    grid[:, None],
-                    mode="bilinear",
-                    padding_mode="border",
-                    align_corners=False,
-                )[:, :, 0]
-            else:
-                probs = sample[:, d + n_edges :]
-            sample = sample[:, :d] * mass[:, None]
-            extra_sum = extra_sum + torch.cat(
-                [mass[:, None], (before * m)[:, None], probs * mass[:, None]], 1
+            sample, extras = _sample_depth_aware(
+                features[:, ci], depth_cdf[:, ci], class_probs[:, ci], grid, z, m, edges, radius
             )
+            extra_sum = extra_sum + extras
+        else:
+            sample = _sample(features[:, ci], grid)
         feat_sum = feat_sum + sample * m[:, None]
         count = count + m
         depth_sum = depth_sum + z * m
@@ -169,3 +126,64 @@ def lift_features(
         view_dir=dir_sum / denom[..., None],
         extras=extra_sum / denom[:, None] if depth_aware else None,
     )
+
+
+def _sample(maps: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of [B, D, h, w] maps at normalised points [B, V, 2] -> [B, D, V]."""
+    return F.grid_sample(
+        maps, grid[:, None], mode="bilinear", padding_mode="border", align_corners=False
+    )[:, :, 0]
+
+
+def _sample_depth_aware(
+    maps, depth_cdf, class_probs, grid, z, seen, edges, radius
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One camera's depth-aware samples: features weighted by the surface mass in each voxel.
+
+    Args:
+        maps: [B, D, h, w] features; depth_cdf: [B, D_bins + 1, h, w] per-pixel depth CDF at
+            ``edges``; class_probs: [B, K, h', w'] class probabilities (any resolution).
+        grid: [B, V, 2] normalised pixel coordinates of the voxel centres.
+        z: [B, V] camera z of the voxel centres, metres; seen: [B, V] 1 where visible.
+        edges: [D_bins + 1] depth-bin edges, metres; radius: half a voxel's depth extent.
+
+    Returns:
+        ``(features [B, D, V] weighted by the mass, extras [B, 2 + K, V])``: extras are the
+        mass, the CDF before the voxel and the mass-weighted class probabilities, masked.
+    """
+    dtype, d, n_edges = maps.dtype, maps.shape[1], edges.numel()
+    # class_probs may have its own resolution (a finer semantic map of the same image extent):
+    # it is then sampled on its own with the same normalised coordinates.
+    separate = class_probs.shape[2:] != maps.shape[2:]
+    parts = [maps, depth_cdf.to(dtype)]
+    sample = _sample(torch.cat(parts if separate else [*parts, class_probs.to(dtype)], 1), grid)
+    cdf = sample[:, d : d + n_edges]
+    before = interp_cdf(cdf, edges, z - radius)  # surface before the voxel
+    mass = (interp_cdf(cdf, edges, z + radius) - before).clamp_min(0.0) * seen
+    probs = _sample(class_probs.to(dtype), grid) if separate else sample[:, d + n_edges :]
+    extras = torch.cat([mass[:, None], (before * seen)[:, None], probs * mass[:, None]], 1)
+    return sample[:, :d] * mass[:, None], extras
+
+
+def _check_inputs(features, cam_to_ego, intrinsics, centres, depth_cdf, class_probs, edges, radius):
+    if features.ndim != 5:
+        raise ValueError(f"features: expected [B, C, D, h, w], got {tuple(features.shape)}")
+    b, c, _, h, w = features.shape
+    if cam_to_ego.shape != (b, c, 4, 4):
+        raise ValueError(f"cam_to_ego: expected {(b, c, 4, 4)}, got {tuple(cam_to_ego.shape)}")
+    if intrinsics.shape != (b, c, 3, 3):
+        raise ValueError(f"intrinsics: expected {(b, c, 3, 3)}, got {tuple(intrinsics.shape)}")
+    if centres.ndim != 2 or centres.shape[1] != 3:
+        raise ValueError(f"centres: expected [V, 3], got {tuple(centres.shape)}")
+    if depth_cdf is None:
+        return
+    if edges is None or class_probs is None or not radius > 0:
+        raise ValueError("depth_cdf: needs class_probs, edges and a radius > 0 with it")
+    if depth_cdf.shape != (b, c, edges.numel(), h, w):
+        raise ValueError(
+            f"depth_cdf: expected {(b, c, edges.numel(), h, w)}, got {tuple(depth_cdf.shape)}"
+        )
+    if class_probs.ndim != 5 or class_probs.shape[:2] != (b, c):
+        raise ValueError(
+            f"class_probs: expected [{b}, {c}, K, {h}, {w}], got {tuple(class_probs.shape)}"
+        )

@@ -15,7 +15,6 @@ __all__ = [
     "semantic_nll_loss",
     "pearson_depth_loss",
     "relative_depth_l1_loss",
-    "ray_distribution_loss",
     "rendered_distribution",
     "balanced_class_weights",
 ]
@@ -198,34 +197,3 @@ def relative_depth_l1_loss(
     err = (rendered - t).abs() / t
     m = mask.to(rendered.dtype)
     return (err * m).sum() / m.sum().clamp_min(1.0)
-
-
-def ray_distribution_loss(
-    moments: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor
-) -> torch.Tensor:
-    """Mean over LiDAR pixels of ``sum_i w_i (z_i - d)^2 / d^2`` (blending weights off the surface).
-
-    Expanded with the rendered moments: ``(S2 - 2 d S1 + d^2 alpha) / d^2`` where
-    ``S1 = sum_i w_i z_i``, ``S2 = sum_i w_i z_i^2`` and ``alpha = sum_i w_i``; it is 0 only
-    when every bit of blending weight on the ray sits at the LiDAR depth d (or there is none,
-    which the semantic loss forbids on labelled pixels). Not in the paper (see
-    ``Img2OccConfig.ray_weight``).
-
-    Args:
-        moments: [N, H, W, 2] ``(S1, S2)``, metres and m^2 (``RenderedViews.moments``).
-        alpha: [N, H, W] accumulated opacity.
-        target: [N, H, W] LiDAR depth, metres (0 = no point).
-
-    Returns:
-        Scalar; 0 with a graph when no pixel has LiDAR depth.
-    """
-    if moments.shape != (*alpha.shape, 2) or target.shape != alpha.shape:
-        raise ValueError(
-            f"moments/alpha/target: expected [N, H, W, 2], [N, H, W], [N, H, W], got "
-            f"{tuple(moments.shape)}, {tuple(alpha.shape)}, {tuple(target.shape)}"
-        )
-    valid = target > 0
-    d = torch.where(valid, target.to(alpha.dtype), torch.ones_like(alpha))
-    spread = (moments[..., 1] - 2.0 * d * moments[..., 0] + d * d * alpha) / (d * d)
-    spread = torch.where(valid, spread.clamp_min(0.0), torch.zeros_like(spread))
-    return spread.sum() / valid.sum().clamp_min(1).to(spread.dtype)

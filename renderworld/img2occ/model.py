@@ -19,7 +19,6 @@ from torch import nn
 from renderworld.constants import NUM_SEMANTIC_CLASSES
 from renderworld.geometry import VoxelGrid, scale_intrinsics
 from renderworld.img2occ.backproject import backprojected_loss
-from renderworld.img2occ.carving import free_space_loss, free_space_targets
 from renderworld.img2occ.config import Img2OccConfig
 from renderworld.img2occ.depth_lift import (
     DepthSemanticHead,
@@ -35,7 +34,6 @@ from renderworld.img2occ.lifting import lift_features
 from renderworld.img2occ.losses import (
     balanced_class_weights,
     pearson_depth_loss,
-    ray_distribution_loss,
     relative_depth_l1_loss,
     semantic_nll_loss,
 )
@@ -176,7 +174,6 @@ class Img2Occ(nn.Module):
             g, cam_to_ego, intrinsics, width=w, height=h,
             render_fn=self.render_fn, prune_opacity=self.cfg.prune_opacity,
             near=self.cfg.near, far=self.cfg.far, backend=self.cfg.render_backend,
-            depth_moments=self.cfg.ray_weight > 0,
         )  # fmt: skip
 
     def augment(self, batch: dict) -> dict:
@@ -251,19 +248,13 @@ class Img2Occ(nn.Module):
         rendered, target = views.depth.flatten(0, 1), depth.flatten(0, 1).to(views.depth)
         dep = pearson_depth_loss(rendered, target)
         l1 = relative_depth_l1_loss(rendered, target)
-        ray = rendered.new_zeros(())
-        if views.moments is not None:
-            ray = ray_distribution_loss(
-                views.moments.flatten(0, 1), views.alpha.flatten(0, 1), target
-            )
-        # One weighted sum per view set: semantics, Pearson depth, depth L1 and ray terms.
+        # One weighted sum per view set: semantics, Pearson depth and depth L1 terms.
         total = (
             self.cfg.semantic_weight * sem
             + self.cfg.depth_weight * dep
             + self.cfg.depth_l1_weight * l1
-            + self.cfg.ray_weight * ray
         )
-        return total, sem, dep, l1, ray
+        return total, sem, dep, l1
 
     def loss(self, batch: dict, output: Img2OccOutput) -> tuple[torch.Tensor, dict[str, float]]:
         """The training loss of ``cfg.supervision``, plus the depth-aware lifting's 2-D losses.
@@ -334,7 +325,7 @@ class Img2Occ(nn.Module):
             raise ValueError("output: has no rendered views; call forward(batch, render=True)")
         cfg = self.cfg
         idx = output.view_index
-        total, sem, dep, l1, ray = self._view_losses(
+        total, sem, dep, l1 = self._view_losses(
             output.views,
             _gather_views(batch["depth"], idx),
             _gather_views(batch["semantics"], idx),
@@ -345,17 +336,7 @@ class Img2Occ(nn.Module):
             "loss_depth": float(dep.detach()),
             "loss_depth_l1": float(l1.detach()),
         }
-        if output.views.moments is not None:
-            logs["loss_ray"] = float(ray.detach())
         g = output.gaussians
-        if cfg.carve_weight > 0:
-            free = free_space_targets(
-                self.centres, batch["cam_to_ego"], batch["render_intrinsics"],
-                batch["depth"], cfg.carve_margin, near=cfg.near,
-            )  # fmt: skip
-            carve = free_space_loss(g.opacities, free, cfg.prob_eps)
-            total = total + cfg.carve_weight * carve
-            logs.update(loss_carve=float(carve.detach()), carved=float(free.float().mean()))
         if cfg.backproject_weight > 0:
             bce, ce, _ = backprojected_loss(
                 g.opacities, g.logits, self.centres, self.grid, batch, cfg.carve_margin,
@@ -365,7 +346,7 @@ class Img2Occ(nn.Module):
             logs.update(loss_bp_occ=float(bce.detach()), loss_bp_sem=float(ce.detach()))
         if output.adj_views is not None:
             self._check_batch(batch, ("adj_depth", "adj_semantics"))
-            a_total, a_sem, a_dep, _, _ = self._view_losses(
+            a_total, a_sem, a_dep, _ = self._view_losses(
                 output.adj_views,
                 _gather_views(batch["adj_depth"], output.adj_index),
                 _gather_views(batch["adj_semantics"], output.adj_index),

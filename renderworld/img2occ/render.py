@@ -35,16 +35,12 @@ class RenderedViews:
         depth: [B, C, H, W] expected camera-z depth normalised by alpha, metres.
         alpha: [B, C, H, W] accumulated opacity.
         num_rendered: [B] int64 Gaussians rendered per sample after pruning.
-        moments: [B, C, H, W, 2] ``(sum_i w_i z_i, sum_i w_i z_i^2)`` of the blending
-            weights w_i and the Gaussians' camera z (metres, m^2), when rendered with
-            ``depth_moments=True`` (else None).
     """
 
     features: torch.Tensor
     depth: torch.Tensor
     alpha: torch.Tensor
     num_rendered: torch.Tensor
-    moments: torch.Tensor | None = None
 
 
 def render_views(
@@ -58,7 +54,6 @@ def render_views(
     near: float = 0.1,
     far: float = 100.0,
     backend: str = "auto",
-    depth_moments: bool = False,
 ) -> RenderedViews:
     """Render class probabilities (softmax of the logits) and depth into C cameras per sample.
 
@@ -73,9 +68,6 @@ def render_views(
         near: near plane, metres.
         far: far plane, metres.
         backend: rasterizer backend name passed through.
-        depth_moments: also render the first two moments of the Gaussians' camera z under
-            the blending weights (``RenderedViews.moments``); z differs per camera, so each
-            camera is rasterized on its own with the two extra feature channels.
 
     Returns:
         :class:`RenderedViews`.
@@ -91,7 +83,7 @@ def render_views(
     dtype = gaussians.means.dtype
     viewmats = invert_pose(cam_to_ego.to(dtype))
     probs = torch.softmax(gaussians.logits, dim=-1)
-    feats, depths, alphas, moments, counts = [], [], [], [], []
+    feats, depths, alphas, counts = [], [], [], []
     k = NUM_SEMANTIC_CLASSES
     for i in range(b):
         keep = torch.nonzero(gaussians.opacities[i].detach() > prune_opacity)[:, 0]
@@ -102,7 +94,6 @@ def render_views(
             feats.append(zero + probs.new_zeros(c, height, width, k))
             depths.append(zero + probs.new_zeros(c, height, width))
             alphas.append(zero + probs.new_zeros(c, height, width))
-            moments.append(zero + probs.new_zeros(c, height, width, 2))
             continue
         args = dict(
             means=gaussians.means[i, keep],
@@ -115,35 +106,15 @@ def render_views(
             far=far,
             backend=backend,
         )
-        if not depth_moments:
-            out = render_fn(
-                features=probs[i, keep], viewmats=viewmats[i], Ks=intrinsics[i].to(dtype), **args
-            )
-            feats.append(out.features)
-            depths.append(out.depth)
-            alphas.append(out.alpha)
-            continue
-        per_cam = []
-        for j in range(c):
-            rot, trans = viewmats[i, j, :3, :3], viewmats[i, j, :3, 3]
-            z = args["means"] @ rot[2] + trans[2]  # [N] camera z of the Gaussian centres
-            f = torch.cat([probs[i, keep], z[:, None], (z * z)[:, None]], dim=1)
-            per_cam.append(
-                render_fn(
-                    features=f,
-                    viewmats=viewmats[i, j : j + 1],
-                    Ks=intrinsics[i, j : j + 1].to(dtype),
-                    **args,
-                )
-            )
-        feats.append(torch.cat([o.features[..., :k] for o in per_cam]))
-        depths.append(torch.cat([o.depth for o in per_cam]))
-        alphas.append(torch.cat([o.alpha for o in per_cam]))
-        moments.append(torch.cat([o.features[..., k:] for o in per_cam]))
+        out = render_fn(
+            features=probs[i, keep], viewmats=viewmats[i], Ks=intrinsics[i].to(dtype), **args
+        )
+        feats.append(out.features)
+        depths.append(out.depth)
+        alphas.append(out.alpha)
     return RenderedViews(
         features=torch.stack(feats),
         depth=torch.stack(depths),
         alpha=torch.stack(alphas),
         num_rendered=torch.tensor(counts, dtype=torch.long),
-        moments=torch.stack(moments) if depth_moments else None,
     )

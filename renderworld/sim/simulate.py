@@ -10,7 +10,9 @@ from __future__ import annotations
 import os
 import shutil
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -146,23 +148,11 @@ def _pose_record(writer, token, pose_global, ts):
 
 
 def _simulate_scene(writer, world, i, config, rig, voxeliser, mask_size, report, maps, bar):
-    name, spec, seed = world.name, world.spec, config.seed
-    loc = LOCATIONS[i % len(LOCATIONS)]
+    """Write one scene: its log, map and calibration, every keyframe, then the linked chains."""
+    name = world.name
     offset = np.eye(4)
     offset[:2, 3] = (300.0 + 137.0 * i, 900.0 + 53.0 * i)
-    base_ts = _BASE_TIME + i * 3_600_000_000
-    logfile = f"n015-2018-07-{18 + i % 10:02d}-{10 + i % 12:02d}-{(7 * i) % 60:02d}-00+0800"
-    log_tok = writer.tok("log", name)
-    writer.add("log", log_tok, logfile=logfile, vehicle="n015", date_captured=logfile[5:15],
-               location=loc)  # fmt: skip
-    if loc not in maps:
-        mtok = writer.tok("map", loc)
-        r = world.raster
-        png = np.where(r.classes[::10, ::10].T[::-1] == ROAD, 255, 0).astype(np.uint8)
-        writer.write_map(mtok, png)
-        maps[loc] = writer.add("map", mtok, log_tokens=[], category="semantic_prior",
-                               filename=f"maps/{mtok}.png")  # fmt: skip
-    maps[loc]["log_tokens"].append(log_tok)
+    log_tok, logfile = _write_log_and_map(writer, world, i, maps)
     calib = {}
     for ch in (LIDAR_NAME, *CAMERA_NAMES):
         t, q = pose_to_translation_quaternion(rig.sensor_to_ego[ch])
@@ -176,71 +166,127 @@ def _simulate_scene(writer, world, i, config, rig, voxeliser, mask_size, report,
         ext = (r.x0 - 400, r.y0 - 400, r.x0 + r.shape[0] * r.cell + 400,
                r.y0 + r.shape[1] * r.cell + 400)  # fmt: skip
         caster = Raycaster(world.objects, ext)
-    cam_off = camera_time_offsets(rig)
-    eff = spec.effects
-    samples, sds = [], {ch: [] for ch in (LIDAR_NAME, *CAMERA_NAMES)}
-    anns: dict[str, list[dict]] = {}
+    scene = _SceneState(
+        writer=writer, world=world, index=i, config=config, rig=rig, voxeliser=voxeliser,
+        mask_size=mask_size, report=report, caster=caster, calib=calib, offset=offset,
+        logfile=logfile, base_ts=_BASE_TIME + i * 3_600_000_000,
+    )  # fmt: skip
     for k in range(config.keyframes):
-        t = k * KEYFRAME_DT
-        ts = base_ts + k * 500_000
-        rng = np.random.default_rng([seed, i, k, 11])
-        s_tok = writer.tok("sample", name, k)
-        samples.append(
-            writer.add("sample", s_tok, timestamp=ts, scene_token=writer.tok("scene", name))
-        )
-        times = {LIDAR_NAME: (t, ts)} | {c: (t + o / 1e6, ts + o) for c, o in cam_off.items()}
-        if eff.ego_motion:
-            with report.effect("ego_motion", name):
-                poses = {c: ego_pose_matrix(world, tc) for c, (tc, _) in times.items()}
-        else:
-            p0 = ego_pose_matrix(world, 0.0)
-            poses = {c: p0 for c in times}
-        if caster.moving:
-            with report.effect("agent_motion", name):
-                for tc, _ in times.values():
-                    caster.dynamic(tc)
-        with report.stage("lidar"):
-            pts, labels, range_image = scan_lidar(world, caster, rig, config.sensors, t,
-                                                  poses[LIDAR_NAME], rng, report)  # fmt: skip
-        for ch, (tc, tsc) in times.items():
-            sd_tok = writer.tok("sample_data", name, k, ch)
-            ext_ = "pcd.bin" if ch == LIDAR_NAME else "jpg"
-            rel = f"samples/{ch}/{logfile}__{ch}__{tsc}.{ext_}"
-            with report.stage("write_files"):
-                if ch == LIDAR_NAME:
-                    writer.write_points(rel, pts)
-                    writer.write_lidarseg(sd_tok, labels)
-            if ch != LIDAR_NAME:
-                with report.stage("camera"):
-                    img = render_camera(world, caster, rig, ch, tc, poses[ch], rng, report)
-                with report.stage("write_files"):
-                    writer.write_jpeg(rel, img)
-            _pose_record(writer, sd_tok, offset @ poses[ch], tsc)
-            sds[ch].append(writer.add(
-                "sample_data", sd_tok, sample_token=s_tok, ego_pose_token=sd_tok,
-                calibrated_sensor_token=calib[ch], filename=rel,
-                fileformat="pcd" if ch == LIDAR_NAME else "jpg",
-                width=0 if ch == LIDAR_NAME else rig.width,
-                height=0 if ch == LIDAR_NAME else rig.height,
-                timestamp=int(tsc), is_key_frame=True))  # fmt: skip
-        with report.stage("occupancy"):
-            sem = voxeliser.semantics(world, t, poses[LIDAR_NAME])
-            p_ego = xform(rig.sensor_to_ego[LIDAR_NAME], pts[:, :3].astype(np.float64))
-            m_lidar = voxeliser.mask_lidar(range_image, p_ego)
-            depths = [camera_depth(caster, rig, ch, t, poses[LIDAR_NAME], *mask_size)
-                      for ch in CAMERA_NAMES]  # fmt: skip
-            m_cam = voxeliser.mask_camera(depths, m_lidar)
-        with report.stage("write_files"):
-            writer.write_occ3d(name, s_tok, sem, m_lidar, m_cam)
-        with report.stage("annotations"):
-            l2g = offset @ poses[LIDAR_NAME] @ rig.sensor_to_ego[LIDAR_NAME]
-            _annotate(writer, world, name, k, t, s_tok, offset, l2g, pts, anns)
+        _simulate_keyframe(scene, k)
         if bar is not None:
             bar.update(1)
-    link_chain(samples)
-    for chain in sds.values():
+    _finish_scene(scene, log_tok)
+
+
+@dataclass
+class _SceneState:
+    """What every keyframe of a scene writes with, and the records it collects for chaining."""
+
+    writer: Any
+    world: Any
+    index: int
+    config: Any
+    rig: Any
+    voxeliser: Any
+    mask_size: tuple
+    report: Any
+    caster: Any
+    calib: dict
+    offset: np.ndarray
+    logfile: str
+    base_ts: int
+    samples: list = field(default_factory=list)
+    sds: dict = field(default_factory=lambda: {ch: [] for ch in (LIDAR_NAME, *CAMERA_NAMES)})
+    anns: dict = field(default_factory=dict)
+
+
+def _write_log_and_map(writer, world, i, maps) -> tuple[str, str]:
+    """The scene's ``log`` record and, once per location, its ``map``; (log token, log name)."""
+    loc = LOCATIONS[i % len(LOCATIONS)]
+    logfile = f"n015-2018-07-{18 + i % 10:02d}-{10 + i % 12:02d}-{(7 * i) % 60:02d}-00+0800"
+    log_tok = writer.tok("log", world.name)
+    writer.add("log", log_tok, logfile=logfile, vehicle="n015", date_captured=logfile[5:15],
+               location=loc)  # fmt: skip
+    if loc not in maps:
+        mtok = writer.tok("map", loc)
+        r = world.raster
+        png = np.where(r.classes[::10, ::10].T[::-1] == ROAD, 255, 0).astype(np.uint8)
+        writer.write_map(mtok, png)
+        maps[loc] = writer.add("map", mtok, log_tokens=[], category="semantic_prior",
+                               filename=f"maps/{mtok}.png")  # fmt: skip
+    maps[loc]["log_tokens"].append(log_tok)
+    return log_tok, logfile
+
+
+def _simulate_keyframe(sc: _SceneState, k: int) -> None:
+    """Keyframe k: poses, agents, LiDAR, cameras, Occ3D labels and annotations."""
+    writer, world, rig, report, name = sc.writer, sc.world, sc.rig, sc.report, sc.world.name
+    eff = world.spec.effects
+    t = k * KEYFRAME_DT
+    ts = sc.base_ts + k * 500_000
+    rng = np.random.default_rng([sc.config.seed, sc.index, k, 11])
+    s_tok = writer.tok("sample", name, k)
+    sc.samples.append(
+        writer.add("sample", s_tok, timestamp=ts, scene_token=writer.tok("scene", name))
+    )
+    cam_off = camera_time_offsets(rig)
+    times = {LIDAR_NAME: (t, ts)} | {c: (t + o / 1e6, ts + o) for c, o in cam_off.items()}
+    if eff.ego_motion:
+        with report.effect("ego_motion", name):
+            poses = {c: ego_pose_matrix(world, tc) for c, (tc, _) in times.items()}
+    else:
+        p0 = ego_pose_matrix(world, 0.0)
+        poses = {c: p0 for c in times}
+    if sc.caster.moving:
+        with report.effect("agent_motion", name):
+            for tc, _ in times.values():
+                sc.caster.dynamic(tc)
+    with report.stage("lidar"):
+        pts, labels, range_image = scan_lidar(world, sc.caster, rig, sc.config.sensors, t,
+                                              poses[LIDAR_NAME], rng, report)  # fmt: skip
+    for ch, (tc, tsc) in times.items():
+        sd_tok = writer.tok("sample_data", name, k, ch)
+        ext_ = "pcd.bin" if ch == LIDAR_NAME else "jpg"
+        rel = f"samples/{ch}/{sc.logfile}__{ch}__{tsc}.{ext_}"
+        with report.stage("write_files"):
+            if ch == LIDAR_NAME:
+                writer.write_points(rel, pts)
+                writer.write_lidarseg(sd_tok, labels)
+        if ch != LIDAR_NAME:
+            with report.stage("camera"):
+                img = render_camera(world, sc.caster, rig, ch, tc, poses[ch], rng, report)
+            with report.stage("write_files"):
+                writer.write_jpeg(rel, img)
+        _pose_record(writer, sd_tok, sc.offset @ poses[ch], tsc)
+        sc.sds[ch].append(writer.add(
+            "sample_data", sd_tok, sample_token=s_tok, ego_pose_token=sd_tok,
+            calibrated_sensor_token=sc.calib[ch], filename=rel,
+            fileformat="pcd" if ch == LIDAR_NAME else "jpg",
+            width=0 if ch == LIDAR_NAME else rig.width,
+            height=0 if ch == LIDAR_NAME else rig.height,
+            timestamp=int(tsc), is_key_frame=True))  # fmt: skip
+    with report.stage("occupancy"):
+        sem = sc.voxeliser.semantics(world, t, poses[LIDAR_NAME])
+        p_ego = xform(rig.sensor_to_ego[LIDAR_NAME], pts[:, :3].astype(np.float64))
+        m_lidar = sc.voxeliser.mask_lidar(range_image, p_ego)
+        depths = [camera_depth(sc.caster, rig, ch, t, poses[LIDAR_NAME], *sc.mask_size)
+                  for ch in CAMERA_NAMES]  # fmt: skip
+        m_cam = sc.voxeliser.mask_camera(depths, m_lidar)
+    with report.stage("write_files"):
+        writer.write_occ3d(name, s_tok, sem, m_lidar, m_cam)
+    with report.stage("annotations"):
+        l2g = sc.offset @ poses[LIDAR_NAME] @ rig.sensor_to_ego[LIDAR_NAME]
+        _annotate(writer, world, name, k, t, s_tok, sc.offset, l2g, pts, sc.anns)
+
+
+def _finish_scene(sc: _SceneState, log_tok: str) -> None:
+    """Link the prev/next chains, write the instances and the scene record."""
+    writer, name, spec = sc.writer, sc.world.name, sc.world.spec
+    eff = spec.effects
+    link_chain(sc.samples)
+    for chain in sc.sds.values():
         link_chain(chain)
-    for key, chain in sorted(anns.items()):
+    for key, chain in sorted(sc.anns.items()):
         link_chain(chain)
         obj_cat = chain[0].pop("_category")
         for rec in chain[1:]:
@@ -253,9 +299,9 @@ def _simulate_scene(writer, world, i, config, rig, voxeliser, mask_size, report,
     desc += ", rain" if eff.weather == "rain" else ", fog" if eff.weather == "fog" else ""
     desc += ", night" if eff.night else ", day"
     writer.add("scene", writer.tok("scene", name), name=name, description=f"Simulated {desc}",
-               log_token=log_tok, nbr_samples=len(samples),
-               first_sample_token=samples[0]["token"],
-               last_sample_token=samples[-1]["token"])  # fmt: skip
+               log_token=log_tok, nbr_samples=len(sc.samples),
+               first_sample_token=sc.samples[0]["token"],
+               last_sample_token=sc.samples[-1]["token"])  # fmt: skip
 
 
 def _annotate(writer, world, name, k, t, s_tok, offset, l2g, pts, anns) -> None:

@@ -175,19 +175,11 @@ def project_gaussians(
     fx, fy = Ks[:, 0, 0, None], Ks[:, 1, 1, None]  # [C, 1]
     cx, cy = Ks[:, 0, 2, None], Ks[:, 1, 2, None]
     z_floor = max(near, 1e-6)  # depths used in divisions: culled pairs stay finite
-
-    with torch.no_grad():
-        x, y, z = p_cam.detach().unbind(-1)
-        zc = z.clamp_min(z_floor)
-        r = _opacity_radius(opacities)[None, :]  # [1, N]
-        s_max = scales.detach().abs().amax(-1)[None, :]  # [1, N]
-        tx, ty = _jacobian_terms(x, y, zc, fx, fy, cx, cy, width, height)
-        j_norm2 = (fx * fx * (1 + tx * tx) + fy * fy * (1 + ty * ty)) / (zc * zc)
-        bound = r * torch.sqrt(s_max * s_max * j_norm2 + eps2d) * 1.01 + 1.0
-        u0, v0 = fx * (x / zc) + cx, fy * (y / zc) + cy
-        keep = (z >= near) & (z <= far) & (r > 0) & _box_inside(u0, v0, bound, bound, width, height)
-        keep &= torch.isfinite(u0) & torch.isfinite(v0) & torch.isfinite(bound)
-        cam_ids, gauss_ids = torch.nonzero(keep, as_tuple=True)
+    intr = (fx, fy, cx, cy)
+    r = _opacity_radius(opacities.detach())[None, :]  # [1, N]
+    cam_ids, gauss_ids = _coarse_cull(
+        p_cam.detach(), scales.detach(), r, intr, width, height, near, far, z_floor, eps2d
+    )
 
     p = p_cam[cam_ids, gauss_ids]  # [V, 3]
     x, y, z = p.unbind(-1)
@@ -200,27 +192,9 @@ def project_gaussians(
     jac = torch.stack([fx / zc, zero, -fx * tx / zc, zero, fy / zc, -fy * ty / zc], dim=-1).reshape(
         -1, 2, 3
     )  # [V, 2, 3]
-
     # (J W) M with M = R diag(s): Σ' = (J W M)(J W M)ᵀ, positive semi-definite by construction.
     m = quat_to_rotmat(quats[gauss_ids]) * scales[gauss_ids, None, :]  # [V, 3, 3]
-    jwm = (jac @ rot_w[cam_ids]) @ m  # [V, 2, 3]
-    r0, r1 = jwm[:, 0, :], jwm[:, 1, :]
-    a0 = (r0 * r0).sum(-1)
-    b = (r0 * r1).sum(-1)
-    c0 = (r1 * r1).sum(-1)
-    # Cauchy–Binet: det(JWM (JWM)ᵀ) = sum of the squared 2x2 minors (never negative).
-    minors = torch.stack(
-        [
-            r0[:, 0] * r1[:, 1] - r0[:, 1] * r1[:, 0],
-            r0[:, 0] * r1[:, 2] - r0[:, 2] * r1[:, 0],
-            r0[:, 1] * r1[:, 2] - r0[:, 2] * r1[:, 1],
-        ],
-        dim=-1,
-    )
-    det = (minors * minors).sum(-1) + eps2d * (a0 + c0) + eps2d * eps2d
-    a = a0 + eps2d
-    c = c0 + eps2d
-    conics = torch.stack([c / det, -b / det, a / det], dim=-1)
+    conics, a, c = _conics((jac @ rot_w[cam_ids]) @ m, eps2d)
     means2d = torch.stack([u, v], dim=-1)
 
     with torch.no_grad():
@@ -249,3 +223,58 @@ def pixel_centres(width: int, height: int, dtype: torch.dtype, device) -> torch.
 def log_alpha_cut() -> float:
     """log(TRANSMITTANCE_MIN), the log-space termination threshold."""
     return math.log(TRANSMITTANCE_MIN)
+
+
+@torch.no_grad()
+def _coarse_cull(p_cam, scales, r, intr, width, height, near, far, z_floor, eps2d):
+    """(camera, Gaussian) pairs that may touch a pixel: a conservative box on all C x N pairs.
+
+    Args:
+        p_cam: [C, N, 3] centres in each camera, metres. scales: [N, 3]. r: [1, N] the
+            opacity's alpha >= ALPHA_MIN radius in standard deviations. intr: ``(fx, fy, cx,
+            cy)`` each [C, 1], pixels.
+
+    Returns:
+        ``(cam_ids [V], gauss_ids [V])`` int64.
+    """
+    fx, fy, cx, cy = intr
+    x, y, z = p_cam.unbind(-1)
+    zc = z.clamp_min(z_floor)
+    s_max = scales.abs().amax(-1)[None, :]  # [1, N]
+    tx, ty = _jacobian_terms(x, y, zc, fx, fy, cx, cy, width, height)
+    j_norm2 = (fx * fx * (1 + tx * tx) + fy * fy * (1 + ty * ty)) / (zc * zc)
+    bound = r * torch.sqrt(s_max * s_max * j_norm2 + eps2d) * 1.01 + 1.0
+    u0, v0 = fx * (x / zc) + cx, fy * (y / zc) + cy
+    keep = (z >= near) & (z <= far) & (r > 0) & _box_inside(u0, v0, bound, bound, width, height)
+    keep &= torch.isfinite(u0) & torch.isfinite(v0) & torch.isfinite(bound)
+    return torch.nonzero(keep, as_tuple=True)
+
+
+def _conics(jwm: torch.Tensor, eps2d: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Inverse 2D covariances of ``Σ' = (JWM)(JWM)ᵀ + eps2d I``.
+
+    Args:
+        jwm: [V, 2, 3] projection Jacobian × world→camera rotation × R diag(s).
+        eps2d: the low-pass added to the diagonal, pixels².
+
+    Returns:
+        ``(conics [V, 3] = (c, -b, a) / det, a [V], c [V])`` with ``a``, ``c`` the diagonal of
+        Σ' (pixels²).
+    """
+    r0, r1 = jwm[:, 0, :], jwm[:, 1, :]
+    a0 = (r0 * r0).sum(-1)
+    b = (r0 * r1).sum(-1)
+    c0 = (r1 * r1).sum(-1)
+    # Cauchy–Binet: det(JWM (JWM)ᵀ) = sum of the squared 2x2 minors (never negative).
+    minors = torch.stack(
+        [
+            r0[:, 0] * r1[:, 1] - r0[:, 1] * r1[:, 0],
+            r0[:, 0] * r1[:, 2] - r0[:, 2] * r1[:, 0],
+            r0[:, 1] * r1[:, 2] - r0[:, 2] * r1[:, 1],
+        ],
+        dim=-1,
+    )
+    det = (minors * minors).sum(-1) + eps2d * (a0 + c0) + eps2d * eps2d
+    a = a0 + eps2d
+    c = c0 + eps2d
+    return torch.stack([c / det, -b / det, a / det], dim=-1), a, c

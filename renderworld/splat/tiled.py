@@ -98,15 +98,7 @@ def composite_tiles(
     offsets = bins.tile_offsets
     counts = offsets[1:] - offsets[:-1]
 
-    tile_idx = torch.arange(num_tiles, device=device)
-    tx = tile_idx % bins.tiles_x
-    ty = (tile_idx // bins.tiles_x) % bins.tiles_y
-    local = torch.arange(ts * ts, device=device)
-    col = tx[:, None] * ts + local % ts  # [NT, P]
-    row = ty[:, None] * ts + local // ts
-    pix_u_all = col.to(dtype) + 0.5
-    pix_v_all = row.to(dtype) + 0.5
-    done_all = (col >= width) | (row >= height)
+    pix_u_all, pix_v_all, done_all = _tile_pixels(bins, num_tiles, width, height, device, dtype)
     log_t_all = torch.zeros(num_tiles, ts * ts, dtype=dtype, device=device)
 
     ids, contribs = [], []
@@ -153,6 +145,23 @@ def composite_tiles(
     out = out.reshape(num_cams, bins.tiles_y, bins.tiles_x, ts, ts, k_dim)
     out = out.permute(0, 1, 3, 2, 4, 5).reshape(num_cams, bins.tiles_y * ts, bins.tiles_x * ts, -1)
     return out[:, :height, :width]
+
+
+def _tile_pixels(bins: TileBins, num_tiles: int, width: int, height: int, device, dtype):
+    """Pixel centres of every tile's pixels and which fall outside the image.
+
+    Returns:
+        ``(u [NT, P], v [NT, P], outside [NT, P])``: centres (i + 0.5, j + 0.5) in pixels of
+        the P = tile_size² pixels of each of the NT tiles; ``outside`` marks padding pixels.
+    """
+    ts = bins.tile_size
+    tile_idx = torch.arange(num_tiles, device=device)
+    tx = tile_idx % bins.tiles_x
+    ty = (tile_idx // bins.tiles_x) % bins.tiles_y
+    local = torch.arange(ts * ts, device=device)
+    col = tx[:, None] * ts + local % ts  # [NT, P]
+    row = ty[:, None] * ts + local // ts
+    return col.to(dtype) + 0.5, row.to(dtype) + 0.5, (col >= width) | (row >= height)
 
 
 def rasterize_tiled(

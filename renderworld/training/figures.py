@@ -1,7 +1,7 @@
 """Pictures of world-model evaluations: BEV occupancy over time, planned trajectories over BEV.
 
 Both functions take plain arrays (no model, no dataset) and write a small PNG (Agg backend).
-Bird's-eye views follow :func:`renderworld.training.report.bev_image`: driving direction (+x)
+Bird's-eye views follow :func:`bev_image`: driving direction (+x)
 up, +y (left) on the left; axes in metres of the ego frame; Occ3D colours with a legend of the
 classes shown.
 """
@@ -21,11 +21,30 @@ from renderworld.constants import (
     OCC3D_COLORS,
     GridSpec,
 )
-from renderworld.training.report import bev_image
 
-__all__ = ["bev_forecast_figure", "trajectory_figure"]
+__all__ = ["bev_image", "bev_forecast_figure", "trajectory_figure"]
 
 _DPI = 80
+
+
+def bev_image(occ: np.ndarray) -> np.ndarray:
+    """Bird's-eye view of occupancy: colour of the highest non-free voxel per (x, y) column.
+
+    Args:
+        occ: [X, Y, Z] uint8 Occ3D ids, ego frame (x forward, y left).
+
+    Returns:
+        [Y, X, 3] uint8 RGB image with x up and y to the left (as seen from above, driving up).
+    """
+    occ = np.asarray(occ)
+    if occ.ndim != 3:
+        raise ValueError(f"occ: expected [X, Y, Z], got shape {occ.shape}")
+    occupied = occ != FREE_ID
+    z_top = occ.shape[2] - 1 - np.argmax(occupied[:, :, ::-1], axis=2)
+    top = np.take_along_axis(occ, z_top[..., None], axis=2)[..., 0]
+    top = np.where(occupied.any(axis=2), top, FREE_ID)
+    rgb = np.asarray(OCC3D_COLORS, dtype=np.uint8)[top]  # [X, Y, 3]
+    return rgb[::-1, ::-1].copy()  # rows: x from front (top) to back; columns: y left to right
 
 
 def _plt():

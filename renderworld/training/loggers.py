@@ -11,11 +11,12 @@ from __future__ import annotations
 import csv
 import logging
 import os
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["MetricLogger", "truncate_metrics_csv", "CSV_HEADER"]
+__all__ = ["MetricLogger", "MetricWindow", "truncate_metrics_csv", "CSV_HEADER"]
 
 log = logging.getLogger("renderworld.training")
 
@@ -117,3 +118,24 @@ def _make_tensorboard(directory: Path) -> Any:
         log.info("TensorBoard not installed: logging to metrics.csv only")
         return None
     return SummaryWriter(log_dir=str(directory))
+
+
+class MetricWindow:
+    """Per-step loss sums between two logged steps (tensors, so ranks reduce them once).
+
+    ``last`` holds the means of the last logged window.
+    """
+
+    def __init__(self) -> None:
+        self.last: dict[str, float] = {}
+        self.reset({})
+
+    def reset(self, last: dict[str, float]) -> None:
+        self.sums: dict[str, Any] = {}
+        self.steps, self.t0 = 0, time.monotonic()
+        self.last = last or self.last
+
+    def add(self, sums: Mapping[str, Any]) -> None:
+        for k, v in sums.items():
+            self.sums[k] = self.sums.get(k, 0) + v
+        self.steps += 1

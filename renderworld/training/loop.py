@@ -37,9 +37,10 @@ from renderworld.training.distributed import (
     any_rank,
 )
 from renderworld.training.ema import WeightEMA
-from renderworld.training.loggers import MetricLogger
+from renderworld.training.loggers import MetricLogger, MetricWindow
 from renderworld.training.optim import build_optimizer, build_scheduler
 from renderworld.training.registry import Stage
+from renderworld.training.schedule import write_schedule
 from renderworld.training.seed import get_rng_state, seed_everything, set_rng_state
 from renderworld.training.validation import (
     autocast_context,
@@ -49,7 +50,6 @@ from renderworld.training.validation import (
 )
 
 __all__ = ["Trainer"]
-
 log = logging.getLogger("renderworld.training")
 
 
@@ -276,22 +276,13 @@ class Trainer:
             self.save("best.pt")
 
     def fit(self, logger: MetricLogger) -> dict[str, float]:
-        """Train until max_steps / max_epochs / max_minutes; return final metrics."""
+        """Train until max_steps / max_epochs; return final metrics.
+
+        ``trainer.max_minutes`` is a guard, not a schedule: when it fires, the run stops,
+        checkpoints, and ``schedule.json`` in the run dir says at which step of how many.
+        """
         tcfg, info = self.tcfg, self.info
-        if info.is_main:
-            log.info(
-                "training %s in %s: step %d/%d, %d steps/epoch, %d rank(s) on %s, "
-                "global batch %d, precision %s",
-                self.stage.name,
-                self.run_dir,
-                self.step,
-                self.total_steps,
-                self.steps_per_epoch,
-                info.world_size,
-                info.device,
-                tcfg.batch_size * tcfg.grad_accum * info.world_size,
-                self.precision,
-            )
+        self._announce()
         self.model.train()
         self.stage.on_train_start(self.model, str(self.run_dir))
         bar = tqdm(
@@ -301,32 +292,15 @@ class Trainer:
             desc=f"{self.stage.name}",
             dynamic_ncols=True,
         )
-        t0 = time.monotonic()
-        base_elapsed = self.elapsed_s
-        window: dict[str, torch.Tensor] = {}
-        window_steps, window_t0 = 0, time.monotonic()
-        last_train: dict[str, float] = {}
+        t0, base_elapsed = time.monotonic(), self.elapsed_s
+        window = MetricWindow()
         validated_at = saved_at = -1
         stopped_early = False
         samples_per_step = tcfg.batch_size * tcfg.grad_accum * info.world_size
         max_epochs = tcfg.max_epochs if tcfg.max_epochs is not None else math.inf
 
         while self.step < self.total_steps and self.epoch < max_epochs and not stopped_early:
-            # Global position: a resume may even change the number of ranks or the batch size.
-            self.sampler.set_epoch(self.epoch, start=self.samples_in_epoch)
-            steps_left = len(self.sampler) // tcfg.batch_size // tcfg.grad_accum
-            self.train_set.epoch = self.epoch
-            loader = make_loader(
-                self.train_set,
-                self.sampler,
-                batch_size=tcfg.batch_size,
-                num_workers=tcfg.num_workers,
-                collate_fn=self.stage.collate_fn(),
-                drop_last=True,
-                pin_memory=tcfg.pin_memory and info.device.type == "cuda",
-                seed=self.seed,
-            )
-            batches = iter(loader)
+            batches, steps_left = self._epoch_batches()
             for _ in range(steps_left):
                 if tcfg.max_minutes is not None:
                     # Checked before a step, so a resumed run whose budget is spent does none.
@@ -338,33 +312,12 @@ class Trainer:
                 self.step += 1
                 self.samples_in_epoch += samples_per_step
                 self.elapsed_s = base_elapsed + time.monotonic() - t0
-                for k, v in sums.items():
-                    window[k] = window.get(k, 0) + v
-                window_steps += 1
+                window.add(sums)
                 bar.update(1)
-
                 if self.step % tcfg.log_every == 0 or self.step == self.total_steps:
-                    stats = {f"{k}/sum": v for k, v in window.items()}
-                    stats.update({f"{k}/count": torch.tensor(window_steps) for k in window})
-                    reduced = all_reduce_sum(stats, info)
-                    last_train = {
-                        k: float(reduced[f"{k}/sum"] / reduced[f"{k}/count"]) for k in window
-                    }
-                    dt = max(time.monotonic() - window_t0, 1e-9)
-                    last_train["train/samples_per_s"] = window_steps * samples_per_step / dt
-                    last_train["train/lr"] = self.scheduler.get_last_lr()[0]
-                    last_train["train/grad_norm"] = norm
-                    logger.log(last_train, self.step, self.epoch)
-                    bar.set_postfix(
-                        loss=f"{last_train['train/loss']:.4g}",
-                        sps=f"{last_train['train/samples_per_s']:.1f}",
-                    )
-                    window, window_steps, window_t0 = {}, 0, time.monotonic()
-
+                    self._log_window(window, norm, samples_per_step, logger, bar)
                 if tcfg.val_every and self.step % tcfg.val_every == 0:
-                    metrics = self.validate()
-                    logger.log(metrics, self.step, self.epoch)
-                    self._after_validation(metrics)
+                    self._validate_and_log(logger)
                     validated_at = self.step
                 if tcfg.ckpt_every and self.step % tcfg.ckpt_every == 0:
                     self.save("last.pt")
@@ -375,21 +328,13 @@ class Trainer:
                 self.epoch += 1
                 self.samples_in_epoch = 0
         bar.close()
-        if stopped_early:
-            log.info(
-                "time budget of %.3g min reached at step %d/%d: stopped and checkpointed",
-                tcfg.max_minutes,
-                self.step,
-                self.total_steps,
-            )
+        self._write_schedule(stopped_early)
         if validated_at != self.step:
-            metrics = self.validate()
-            logger.log(metrics, self.step, self.epoch)
-            self._after_validation(metrics)
+            self._validate_and_log(logger)
         if saved_at != self.step:
             self.save("last.pt")
         self.stage.on_train_end(self.eval_model, str(self.run_dir))
-        out: dict[str, float] = {k: v for k, v in last_train.items() if k == "train/loss"}
+        out: dict[str, float] = {k: v for k, v in window.last.items() if k == "train/loss"}
         out.update(self.val_metrics)
         out["step"] = float(self.step)
         out["epoch"] = float(self.epoch)
@@ -397,3 +342,66 @@ class Trainer:
         if self.best.get("value") is not None:
             out[f"best/{self.best['metric']}"] = float(self.best["value"])
         return out
+
+    def _announce(self) -> None:
+        t, i = self.tcfg, self.info
+        if i.is_main:
+            log.info(
+                f"training {self.stage.name} in {self.run_dir}: step {self.step}/"
+                f"{self.total_steps}, {self.steps_per_epoch} steps/epoch, {i.world_size} rank(s) "
+                f"on {i.device}, global batch {t.batch_size * t.grad_accum * i.world_size}, "
+                f"precision {self.precision}"
+            )
+
+    def _epoch_batches(self) -> tuple[Any, int]:
+        """An iterator over this epoch's remaining batches and how many steps they make."""
+        tcfg = self.tcfg
+        # Global position: a resume may even change the number of ranks or the batch size.
+        self.sampler.set_epoch(self.epoch, start=self.samples_in_epoch)
+        steps_left = len(self.sampler) // tcfg.batch_size // tcfg.grad_accum
+        self.train_set.epoch = self.epoch
+        loader = make_loader(
+            self.train_set,
+            self.sampler,
+            batch_size=tcfg.batch_size,
+            num_workers=tcfg.num_workers,
+            collate_fn=self.stage.collate_fn(),
+            drop_last=True,
+            pin_memory=tcfg.pin_memory and self.info.device.type == "cuda",
+            seed=self.seed,
+        )
+        return iter(loader), steps_left
+
+    def _log_window(self, window: MetricWindow, norm, samples_per_step: int, logger, bar) -> None:
+        """Reduce the window's sums over ranks, log their means and throughput, reset it."""
+        stats = {f"{k}/sum": v for k, v in window.sums.items()}
+        stats.update({f"{k}/count": torch.tensor(window.steps) for k in window.sums})
+        reduced = all_reduce_sum(stats, self.info)
+        last = {k: float(reduced[f"{k}/sum"] / reduced[f"{k}/count"]) for k in window.sums}
+        dt = max(time.monotonic() - window.t0, 1e-9)
+        last["train/samples_per_s"] = window.steps * samples_per_step / dt
+        last["train/lr"] = self.scheduler.get_last_lr()[0]
+        last["train/grad_norm"] = norm
+        logger.log(last, self.step, self.epoch)
+        bar.set_postfix(loss=f"{last['train/loss']:.4g}", sps=f"{last['train/samples_per_s']:.1f}")
+        window.reset(last)
+
+    def _validate_and_log(self, logger: MetricLogger) -> None:
+        metrics = self.validate()
+        logger.log(metrics, self.step, self.epoch)
+        self._after_validation(metrics)
+
+    def _write_schedule(self, stopped_early: bool) -> None:
+        if stopped_early:
+            log.warning(
+                "time guard of %.3g min fired at step %d of %d: stopped and checkpointed; "
+                "results are not those of the full schedule",
+                self.tcfg.max_minutes,
+                self.step,
+                self.total_steps,
+            )
+        if self.info.is_main:
+            write_schedule(
+                self.run_dir, self.step, self.total_steps, stopped_early,
+                self.tcfg.max_minutes, self.elapsed_s,
+            )  # fmt: skip

@@ -43,10 +43,6 @@ class WorldModelConfig:
         cv_residual: the ego head predicts a correction to the constant-velocity prior (the
             previous step's displacement) instead of the displacement itself; the head starts
             at zero, so an untrained model plans like constant velocity.
-        copy_prior: None (off), or the initial value of a learned per-codebook bonus added
-            to the logit of each cell's current code (the scene stays as it is unless the
-            model has evidence it changes; the token analogue of ``cv_residual``). Not in
-            OccWorld or the paper.
     """
 
     codebook_sizes: tuple[int, ...] = (512, 512)
@@ -60,7 +56,6 @@ class WorldModelConfig:
     max_displacement: float = 15.0
     mlp_ratio: float = 2.0
     cv_residual: bool = True
-    copy_prior: float | None = None
 
     def __post_init__(self) -> None:
         # Accept lists (e.g. from a loaded dict) but store tuples so the config stays hashable.
@@ -97,10 +92,6 @@ class WorldModelConfig:
             )
         if not self.max_displacement > 0:
             raise ValueError(f"max_displacement: expected > 0 m, got {self.max_displacement}")
-        if self.copy_prior is not None and not (
-            isinstance(self.copy_prior, (int, float)) and -1e3 < float(self.copy_prior) < 1e3
-        ):
-            raise ValueError(f"copy_prior: expected null or a finite number, got {self.copy_prior}")
         if not self.mlp_ratio > 0:
             raise ValueError(f"mlp_ratio: expected > 0, got {self.mlp_ratio}")
 

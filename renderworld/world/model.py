@@ -118,10 +118,6 @@ class WorldModel(nn.Module):
             nn.init.zeros_(self.ego_head.bias)
         self.out_norm = nn.LayerNorm(d)
         self.code_heads = nn.ModuleList(nn.Linear(d, k) for k in config.codebook_sizes)
-        self.copy_bonus = None
-        if config.copy_prior is not None:
-            g = config.num_codebooks
-            self.copy_bonus = nn.Parameter(torch.full((g,), float(config.copy_prior)))
 
     # ------------------------------------------------------------------ validation
     def _check_inputs(
@@ -228,16 +224,6 @@ class WorldModel(nn.Module):
 
         x = self.out_norm(x)
         logits = [head(x).permute(0, 1, 4, 2, 3) for head in self.code_heads]
-        if self.copy_bonus is not None:
-            # Each position's prediction for the next frame starts from its own codes.
-            logits = [
-                lg.scatter_add(
-                    2,
-                    tokens[:, start:, g, None],
-                    self.copy_bonus[g].to(lg.dtype).expand_as(tokens[:, start:, g, None]),
-                )
-                for g, lg in enumerate(logits)
-            ]
         raw = self.ego_head(ego).view(b, t, len(COMMANDS), 2)
         if cfg.cv_residual:
             # Prior for d[i]: the displacement into frame i, d[i-1] (none for frame 0).

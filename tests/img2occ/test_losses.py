@@ -10,7 +10,6 @@ from renderworld.constants import FREE_ID, NUM_SEMANTIC_CLASSES
 from renderworld.img2occ import (
     IGNORE_LABEL,
     pearson_depth_loss,
-    ray_distribution_loss,
     relative_depth_l1_loss,
     rendered_distribution,
     semantic_nll_loss,
@@ -95,35 +94,6 @@ def test_relative_l1_value_and_empty():
     empty = relative_depth_l1_loss(r, torch.zeros_like(t))
     assert empty.item() == 0.0 and empty.requires_grad
     _finite_grad(r, empty)
-
-
-def test_ray_distribution_loss_is_the_weighted_squared_offset():
-    # One pixel, two Gaussians along the ray: weights 0.3 at z = 8 m and 0.6 at z = 10 m,
-    # LiDAR depth 10 m -> (0.3 * 2^2 + 0.6 * 0) / 10^2; a second pixel without LiDAR is ignored.
-    w = torch.tensor([0.3, 0.6])
-    z = torch.tensor([8.0, 10.0])
-    m = torch.stack([(w * z).sum(), (w * z * z).sum()])
-    moments = torch.stack([m, m]).view(1, 1, 2, 2).requires_grad_(True)
-    alpha = torch.full((1, 1, 2), float(w.sum()), requires_grad=True)
-    target = torch.tensor([[[10.0, 0.0]]])
-    loss = ray_distribution_loss(moments, alpha, target)
-    assert loss.item() == pytest.approx(0.3 * 4.0 / 100.0, rel=1e-5)
-    loss.backward()
-    assert torch.isfinite(moments.grad).all() and torch.isfinite(alpha.grad).all()
-    # All the weight at the LiDAR depth: no spread, no loss.
-    exact = torch.tensor([[[[0.9 * 10.0, 0.9 * 100.0]]]])
-    assert ray_distribution_loss(exact, torch.full((1, 1, 1), 0.9), target[..., :1]).item() == (
-        pytest.approx(0.0, abs=1e-6)
-    )
-
-
-def test_ray_distribution_loss_without_lidar_is_zero_with_graph():
-    moments = torch.rand(2, 3, 4, 2, requires_grad=True)
-    alpha = torch.rand(2, 3, 4, requires_grad=True)
-    loss = ray_distribution_loss(moments, alpha, torch.zeros(2, 3, 4))
-    assert loss.item() == 0.0 and loss.requires_grad
-    with pytest.raises(ValueError, match="moments"):
-        ray_distribution_loss(moments[..., :1], alpha, torch.zeros(2, 3, 4))
 
 
 def _render_like(n=2, h=3, w=4, seed=0):

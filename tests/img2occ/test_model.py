@@ -278,36 +278,13 @@ def test_default_config_is_the_coarse_grid():
     assert np.isclose(cfg.scale_range[0], 0.2) and np.isclose(cfg.scale_range[1], 0.8)
 
 
-def test_depth_moments_agree_with_the_rendered_depth(synthetic_batch):
-    # The per-camera renders with z and z^2 channels give the same semantics, alpha and
-    # depth as the shared-feature render, and S1 / alpha is the expected depth.
-    model = _model("torch", views_per_step=None)
-    model.eval()
-    plain = model(synthetic_batch)
-    moments_model = _model("torch", views_per_step=None, ray_weight=1.0)
-    moments_model.load_state_dict(model.state_dict())
-    moments_model.eval()
-    with_m = moments_model(synthetic_batch)
-    assert plain.views.moments is None and with_m.views.moments is not None
-    torch.testing.assert_close(with_m.views.alpha, plain.views.alpha, atol=1e-5, rtol=1e-4)
-    torch.testing.assert_close(with_m.views.features, plain.views.features, atol=1e-5, rtol=1e-4)
-    s1 = with_m.views.moments[..., 0]
-    lit = with_m.views.alpha > 0.05
-    torch.testing.assert_close(
-        (s1 / with_m.views.alpha)[lit], with_m.views.depth[lit], atol=1e-3, rtol=1e-4
-    )
-    # Jensen: S2 * alpha >= S1^2 (the spread along each ray is non-negative).
-    s2 = with_m.views.moments[..., 1]
-    assert bool((s2 * with_m.views.alpha - s1 * s1 >= -1e-3 * s2.clamp_min(1)).all())
-
-
-def test_ray_and_carving_losses_train_finite_on_hard_cases(synthetic_batch):
-    model = _model("torch", views_per_step=None, ray_weight=2.0, carve_weight=1.0)
+def test_backprojected_loss_trains_finite_on_hard_cases(synthetic_batch):
+    model = _model("torch", views_per_step=None, backproject_weight=2.0)
     model.train()
     for case in ("all_free_targets", "no_lidar_at_all", "zero_images"):
         batch = _hard_case(synthetic_batch, case)
         loss, logs = model.loss(batch, model(batch))
-        assert torch.isfinite(loss) and "loss_ray" in logs and "loss_carve" in logs, logs
+        assert torch.isfinite(loss) and "loss_bp_occ" in logs and "loss_bp_sem" in logs, logs
         loss.backward()
         for name, p in model.named_parameters():
             assert p.grad is None or torch.isfinite(p.grad).all(), name

@@ -11,6 +11,7 @@ import torch
 
 from renderworld.training import evaluate, train
 from renderworld.training.checkpoint import load_checkpoint
+from renderworld.training.schedule import read_schedule
 
 from .conftest import compose_cfg, fit_cfg, params_of
 
@@ -25,6 +26,8 @@ def test_regression_learns_and_returns_metrics(tmp_path):
     # y = A x + b with A, b ~ N(0, 1) in 8 dims: predicting 0 costs ~9 MSE; noise floor 0.0025.
     assert metrics["val/loss"] < 0.05
     assert metrics["step"] == 150 and metrics["stopped_early"] == 0.0
+    record = read_schedule(tmp_path)
+    assert (record["step"], record["max_steps"], record["stopped_early"]) == (150, 150, False)
     assert {"train/loss", "val/loss", "val/mae", "best/val/loss"} <= set(metrics)
     rows = _rows(tmp_path)
     val = [(int(r["step"]), float(r["value"])) for r in rows if r["key"] == "val/loss"]
@@ -133,6 +136,10 @@ def test_time_budget_stops_cleanly_and_checkpoints(tmp_path):
     ckpt = load_checkpoint(tmp_path / "checkpoints" / "last.pt", "regression", for_training=True)
     assert ckpt["step"] == metrics["step"]
     assert ckpt["elapsed_s"] >= 0.3
+    # The run dir says where the guard stopped it, for reports.
+    record = read_schedule(tmp_path)
+    assert record["stopped_early"] and record["step"] == metrics["step"]
+    assert record["max_steps"] == 150 and record["max_minutes"] == 0.005
     # Resuming with the same budget stops at once; a larger budget continues.
     again = train(fit_cfg(tmp_path, "resume=true", "trainer.max_minutes=0.005"))
     assert again["step"] == metrics["step"]

@@ -321,7 +321,7 @@ def test_mini_experiment_composes_with_its_deltas():
     cfg = compose_cfg(["experiment=world_model_mini", "stage.tokenizer_ckpt=tok.pt"])
     assert cfg.stage.name == "world_model" and cfg.dataset.name == "sim_mini"
     assert cfg.grid.name == "coarse" and cfg.trainer.device == "cpu"
-    assert cfg.trainer.max_minutes == 8 and cfg.trainer.monitor == "val/model/miou_avg"
+    assert cfg.trainer.max_minutes >= 20 and cfg.trainer.monitor == "val/model/miou_avg"
     assert cfg.stage.model.embed_dim == 64 and cfg.stage.model.num_scales == 2
     assert cfg.trainer.max_steps == 400
     assert cfg.stage.history == 5 and cfg.stage.future == 6 and cfg.stage.lambda_l2 == 0.1

@@ -42,7 +42,6 @@ def random_inputs(b=2, t=5, seed=1, cfg=None):
         (dict(token_grid=(2, 2)), "num_scales"),
         (dict(max_displacement=0.0), "max_displacement"),
         (dict(num_scales=0, layers_per_scale=()), "num_scales"),
-        (dict(copy_prior=float("nan")), "copy_prior"),
     ],
 )
 def test_config_validation(kw, match):
@@ -113,23 +112,6 @@ def test_untrained_cv_residual_model_plans_constant_velocity():
     bound = m.config.max_displacement
     expected = bound * torch.tanh(prior / bound)
     torch.testing.assert_close(out.displacement, expected, rtol=0, atol=1e-6)
-
-
-def test_copy_prior_adds_its_bonus_to_the_current_code_and_learns():
-    tokens, disp, cmd = random_inputs()
-    plain = tiny_model()
-    prior = tiny_model(copy_prior=3.0)  # same seed: identical weights, plus the bonus
-    a, b = plain(tokens, disp, cmd), prior(tokens, disp, cmd)
-    for g, (la, lb) in enumerate(zip(a.logits, b.logits)):
-        onehot = torch.nn.functional.one_hot(tokens[:, :, g], la.shape[2]).permute(0, 1, 4, 2, 3)
-        torch.testing.assert_close(lb, la + 3.0 * onehot.to(la.dtype))
-    # With a large bonus an untrained model forecasts "nothing changes".
-    big = tiny_model(copy_prior=100.0)
-    out = big(tokens, disp, cmd)
-    assert torch.equal(out.logits[0].argmax(2), tokens[:, :, 0])
-    sum(lg.sum() for lg in out.logits).backward()
-    assert big.copy_bonus.grad is not None and torch.isfinite(big.copy_bonus.grad).all()
-    assert plain.copy_bonus is None
 
 
 def test_command_selects_ego_mode():

@@ -23,30 +23,28 @@ recomputed with that threshold. Validation during training uses the threshold th
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import warnings
 from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import OmegaConf
 from torch import nn
 from torch.utils.data import DataLoader, Dataset, default_collate
 
 from renderworld.constants import OCC3D_CLASSES
 from renderworld.data.cache import CachedDataset
-from renderworld.img2occ import Img2Occ, Img2OccConfig, draw_views
-from renderworld.training.checkpoint import (
-    check_state_dict_keys,
-    load_checkpoint,
-)
+from renderworld.img2occ import Img2Occ, draw_views
 from renderworld.training.registry import Stage, register_stage
 from renderworld.training.stages.common import (
     confusion_stats,
-    grid_of,
-    infos_dir,
     occupancy_metrics,
+)
+from renderworld.training.stages.img2occ_builders import (
+    _adjacent,
+    img2occ_config,
+    img2occ_datasets,
+    load_img2occ,
 )
 from renderworld.training.stages.img2occ_threshold import (
     ThresholdMixin,
@@ -71,102 +69,6 @@ MASKS = {
     "lidar/": "LiDAR mask",
     "full/": "full volume",
 }
-# Stage-level keys that fill these Img2OccConfig fields (never set them under stage.model).
-_STAGE_FIELDS = ("grid", "input_size", "render_size", "adjacent_frames")
-
-
-def _size(cfg: Any, key: str) -> tuple[int, int]:
-    value = cfg.stage.get(key)
-    try:
-        h, w = (int(v) for v in value)
-    except (TypeError, ValueError):
-        raise ValueError(f"stage.{key}: expected [H, W] pixels, got {value!r}") from None
-    return h, w
-
-
-def _adjacent(cfg: Any) -> int:
-    k = cfg.stage.get("adjacent_frames", 0)
-    if isinstance(k, bool) or not isinstance(k, int) or k < 0:
-        raise ValueError(f"stage.adjacent_frames: expected an integer k >= 0, got {k!r}")
-    return k
-
-
-def img2occ_config(cfg: Any) -> Img2OccConfig:
-    """The :class:`Img2OccConfig` of a run config.
-
-    ``stage.model`` holds Img2OccConfig fields; the grid comes from the ``grid`` group and
-    ``input_size``, ``render_size``, ``adjacent_frames`` (k > 0 turns the model's adjacent-view
-    losses on) from the stage's own keys, shared with the datasets.
-
-    Raises:
-        ValueError: an unknown ``stage.model`` key, a stage-level field set under
-            ``stage.model``, or an invalid value (the message names the key).
-    """
-    model = OmegaConf.to_container(cfg.stage.model, resolve=True) if cfg.stage.get("model") else {}
-    names = {f.name for f in dataclasses.fields(Img2OccConfig)}
-    for key in model:
-        if key in _STAGE_FIELDS:
-            raise ValueError(
-                f"stage.model.{key}: set by the run config ("
-                + ("the grid group" if key == "grid" else f"stage.{key}")
-                + "), not under stage.model"
-            )
-        if key not in names:
-            raise ValueError(
-                f"stage.model.{key}: not an Img2OccConfig field; expected one of "
-                f"{sorted(names - set(_STAGE_FIELDS))}"
-            )
-    try:
-        return Img2OccConfig(
-            grid=grid_of(cfg),
-            input_size=_size(cfg, "input_size"),
-            render_size=_size(cfg, "render_size"),
-            adjacent_frames=_adjacent(cfg) > 0,
-            **model,
-        )
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"stage (Img2OccConfig): {err}") from None
-
-
-def img2occ_datasets(cfg: Any, split: str, adjacent_frames: int = 0) -> Dataset:
-    """An ``Img2OccDataset`` of one converter split at the run's sizes and grid.
-
-    Args:
-        cfg: run config (``dataset``, ``grid``, ``stage``).
-        split: split name (``infos_<split>.parquet`` in :func:`infos_dir`).
-        adjacent_frames: k neighbouring keyframes on each side as label-only views.
-    """
-    from renderworld.data import Img2OccDataset, load_infos
-
-    return Img2OccDataset(
-        load_infos(infos_dir(cfg), split),
-        str(cfg.dataset.data_root),
-        input_size=_size(cfg, "input_size"),
-        render_size=_size(cfg, "render_size"),
-        grid=grid_of(cfg),
-        adjacent_frames=adjacent_frames,
-    )
-
-
-def load_img2occ(path, device: str | torch.device = "cpu") -> tuple[Img2Occ, dict[str, Any]]:
-    """Rebuild a trained Img2Occ from an ``img2occ`` checkpoint (its stored config), eval mode.
-
-    Args:
-        path: ``last.pt`` / ``best.pt`` written by ``tools/train.py stage=img2occ``.
-        device: where to put the model.
-
-    Returns:
-        ``(model, checkpoint dict)``; the readout threshold is the checkpoint's.
-
-    Raises:
-        CheckpointError: the file is not an img2occ checkpoint or its weights do not fit.
-    """
-    ckpt = load_checkpoint(path, expected_stage="img2occ")
-    model = Img2Occ(img2occ_config(OmegaConf.create(ckpt["config"])))
-    check_state_dict_keys(model, ckpt["model"], f"checkpoint {str(path)!r}")
-    model.load_state_dict(ckpt["model"], strict=True)
-    model.to(device).eval()
-    return model, ckpt
 
 
 def _fmt(value: float | None) -> str:

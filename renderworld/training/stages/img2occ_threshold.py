@@ -26,6 +26,7 @@ from renderworld.img2occ import Img2Occ, choose_threshold
 from renderworld.img2occ.calibration import DEFAULT_OFFSETS
 from renderworld.img2occ.readout import DEFAULT_THRESHOLDS
 from renderworld.training.checkpoint import load_checkpoint, save_checkpoint
+from renderworld.training.stages.img2occ_builders import img2occ_datasets
 
 __all__ = ["ThresholdMixin"]
 
@@ -86,7 +87,7 @@ class ThresholdMixin:
     ``transfer_batch`` and ``_val_metrics``."""
 
     def _threshold_set(self) -> Dataset:
-        data = _datasets(self.cfg, self.cfg.dataset.train_split)
+        data = img2occ_datasets(self.cfg, self.cfg.dataset.train_split)
         cap = _threshold_options(self.cfg)[2]
         if cap is not None and cap < len(data):
             # Evenly spaced over the split (every scene contributes), deterministic.
@@ -188,9 +189,3 @@ class ThresholdMixin:
         if metrics:
             ckpt["metrics"] = metrics
         save_checkpoint(ckpt, path)
-
-
-def _datasets(cfg: Any, split: str) -> Dataset:
-    from renderworld.training.stages.img2occ import img2occ_datasets
-
-    return img2occ_datasets(cfg, split)

@@ -12,31 +12,10 @@ import json
 from collections import defaultdict
 from pathlib import Path
 
-import numpy as np
+from renderworld.constants import FREE_ID, OCC3D_CLASSES
+from renderworld.training.figures import bev_image
 
-from renderworld.constants import FREE_ID, OCC3D_CLASSES, OCC3D_COLORS
-
-__all__ = ["bev_image", "plot_training_curves", "metrics_table", "write_report"]
-
-
-def bev_image(occ: np.ndarray) -> np.ndarray:
-    """Bird's-eye view of occupancy: colour of the highest non-free voxel per (x, y) column.
-
-    Args:
-        occ: [X, Y, Z] uint8 Occ3D ids, ego frame (x forward, y left).
-
-    Returns:
-        [Y, X, 3] uint8 RGB image with x up and y to the left (as seen from above, driving up).
-    """
-    occ = np.asarray(occ)
-    if occ.ndim != 3:
-        raise ValueError(f"occ: expected [X, Y, Z], got shape {occ.shape}")
-    occupied = occ != FREE_ID
-    z_top = occ.shape[2] - 1 - np.argmax(occupied[:, :, ::-1], axis=2)
-    top = np.take_along_axis(occ, z_top[..., None], axis=2)[..., 0]
-    top = np.where(occupied.any(axis=2), top, FREE_ID)
-    rgb = np.asarray(OCC3D_COLORS, dtype=np.uint8)[top]  # [X, Y, 3]
-    return rgb[::-1, ::-1].copy()  # rows: x from front (top) to back; columns: y left to right
+__all__ = ["bev_image", "plot_training_curves", "metrics_table", "per_class_table", "write_report"]
 
 
 def plot_training_curves(metrics_csv: Path, out_png: Path, keys=("train/loss",)) -> Path | None:

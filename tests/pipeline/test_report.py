@@ -9,9 +9,10 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from renderworld.constants import FREE_ID, GRIDS
+from renderworld.pipeline.job_report import main_job_report as _report
+from renderworld.pipeline.runner import StepResult
 from renderworld.training.figures import bev_forecast_figure
-from renderworld.training.pipeline import StepResult
-from renderworld.training.pipeline_main import _report
+from renderworld.training.schedule import write_schedule
 from renderworld.training.stages.world_model_report import write_report
 
 
@@ -44,7 +45,14 @@ def test_report_has_one_world_model_table_pictures_and_no_empty_cell(tmp_path):
     _outputs(out)
     cfg = OmegaConf.create({"data_root": str(tmp_path / "data"), "out": str(out)})
     results = [StepResult("tokenizer", "skipped", 12.0, "f"), StepResult("img2occ", "ran", 3, "g")]
+    results.append(StepResult("img2occ_eval", "ran", 1, "h"))
+    write_schedule(out / "tokenizer", 700, 700, False, 20.0, 190.0)
+    write_schedule(out / "img2occ", 1795, 2700, True, 11.25, 675.0)
     text = _report(cfg, out, results, 5.0).read_text()
+    # The run table says how far each training got, and where a time guard stopped one.
+    assert "| tokenizer | skipped | 12 | 700 of 700 steps |" in text
+    assert "| img2occ | ran | 3 | **stopped at step 1795 of 2700** (time guard 11.25 min) |" in text
+    assert "| img2occ_eval | ran | 1 | – |" in text
     assert "Not in this run yet" not in text
     assert text.count("| setting | method |") == 1  # one table, both settings
     assert "| Camera | CV-trajectory |" in text and "| 3D-Occ | model |" in text

@@ -172,30 +172,40 @@ def run_steps(
             echo(header)
         echo(f"    $ {' '.join(command)}")
         log = log_dir / f"{step.name}.log"
-        t0 = time.perf_counter()
-        with open(log, "w") as fh:
-            proc = subprocess.Popen(
-                command,
-                cwd=cwd,
-                env=env,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
-                text=True,
-                bufsize=1,
-            )
-            assert proc.stdout is not None
-            for line in proc.stdout:
-                fh.write(line)
-                sys.stdout.write("    " + line)
-                sys.stdout.flush()
-            rc = proc.wait()
-        seconds = time.perf_counter() - t0
-        if rc != 0:
-            raise PipelineError(
-                f"step {step.name!r} failed with exit code {rc} after {seconds:.0f} s; "
-                f"log: {log}. Re-run to retry it (finished steps are kept)."
-            )
+        seconds = _run_logged(step.name, command, log, cwd, env)
         _write_stamp(step, {"fingerprint": fp, "seconds": seconds, "command": step.command})
         echo(f"    done in {seconds:.0f} s")
         results.append(StepResult(step.name, "ran", seconds, fp, log))
     return results
+
+
+def _run_logged(name: str, command: list[str], log: Path, cwd: Path, env) -> float:
+    """Run one step's command, its output both indented on stdout and in ``log``; seconds taken.
+
+    Raises:
+        PipelineError: the command exited non-zero.
+    """
+    t0 = time.perf_counter()
+    with open(log, "w") as fh:
+        proc = subprocess.Popen(
+            command,
+            cwd=cwd,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            bufsize=1,
+        )
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            fh.write(line)
+            sys.stdout.write("    " + line)
+            sys.stdout.flush()
+        rc = proc.wait()
+    seconds = time.perf_counter() - t0
+    if rc != 0:
+        raise PipelineError(
+            f"step {name!r} failed with exit code {rc} after {seconds:.0f} s; "
+            f"log: {log}. Re-run to retry it (finished steps are kept)."
+        )
+    return seconds

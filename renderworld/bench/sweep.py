@@ -4,7 +4,7 @@ A point is ``(stage, knob, value)``: the stage's mini experiment (``configs/expe
 the preset's budget (the same ``trainer.max_steps`` / ``trainer.max_minutes`` for every point of
 a stage) and ONE knob changed from the stage default; the point ``knob = "default"`` changes
 nothing and is the reference of every ratio. Each point runs in its own subprocess
-(``python -m renderworld.training.bench_point``: train, evaluate, time inference, report its own
+(``python -m renderworld.bench.point``: train, evaluate, time inference, report its own
 peak RSS), one at a time, and leaves ``<out>/points/<id>/result.json``. A point whose
 ``result.json`` carries the same fingerprint (stage, experiment, every override, the budget,
 the data root and the upstream checkpoint's size and mtime) is reused unless ``overwrite``;
@@ -60,9 +60,6 @@ KNOBS: dict[str, dict[str, Knob]] = {
             "stage.model.fine_semantics", "bool", "stride-2 per-pixel class head (on/off)"
         ),
         "feature_stride": Knob("stage.model.feature_stride", "int", "lifted feature stride"),
-        "carve_weight": Knob(
-            "stage.model.carve_weight", "float", "free-space carving weight (0: off)"
-        ),
         "backproject_weight": Knob(
             "stage.model.backproject_weight", "float", "back-projected voxel targets (0: off)"
         ),
@@ -330,7 +327,7 @@ def run_point(
     env = dict(os.environ)
     env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(repo), env.get("PYTHONPATH")]))
-    cmd = [sys.executable, "-m", "renderworld.training.bench_point", str(point_dir / "spec.json")]
+    cmd = [sys.executable, "-m", "renderworld.bench.point", str(point_dir / "spec.json")]
     log = point_dir / "log.txt"
     with log.open("w") as fh:
         try:

@@ -16,7 +16,14 @@ import pytest
 from omegaconf import OmegaConf
 
 from data_converters import ConvertOptions, create_data
-from renderworld.training.bench import (
+from renderworld.bench.main import bench_points
+from renderworld.bench.report import (
+    pareto_front,
+    result_rows,
+    stage_table,
+    write_outputs,
+)
+from renderworld.bench.sweep import (
     KNOBS,
     BenchPoint,
     expand_points,
@@ -24,16 +31,8 @@ from renderworld.training.bench import (
     point_fingerprint,
     run_sweep,
 )
-from renderworld.training.bench_main import bench_points
-from renderworld.training.bench_report import (
-    pareto_front,
-    result_rows,
-    stage_table,
-    write_outputs,
-)
 from renderworld.training.checkpoint import load_checkpoint
-
-from .conftest import compose_cfg
+from tests.training.conftest import compose_cfg
 
 
 def _preset(**stages):
@@ -88,13 +87,13 @@ def test_img2occ_accuracy_knobs_write_their_overrides():
     img = {
         "experiment": "img2occ_mini",
         "budget": {"max_steps": 10},
-        "knobs": {"fine_semantics": [False], "feature_stride": [4], "carve_weight": [0.3]},
+        "knobs": {"fine_semantics": [False], "feature_stride": [4], "backproject_weight": [0.0]},
     }
     pts = expand_points(_preset(img2occ=img))
     assert [p.overrides[-1] for p in pts[1:]] == [
         "stage.model.fine_semantics=false",
         "stage.model.feature_stride=4",
-        "stage.model.carve_weight=0.3",
+        "stage.model.backproject_weight=0.0",
     ]
     assert pts[1].point_id == "img2occ__fine_semantics-False"
     with pytest.raises(TypeError, match="expected true or false for knob 'fine_semantics'"):

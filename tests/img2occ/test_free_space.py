@@ -1,11 +1,11 @@
-"""Free-space carving: hand-placed voxels in front of, at and behind a LiDAR depth."""
+"""Free-space targets of the back-projection: voxels in front of, at and behind a LiDAR depth."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from renderworld.img2occ.carving import free_space_loss, free_space_targets
+from renderworld.img2occ.backproject import free_space_targets
 
 
 def _camera_looking_along_x():
@@ -34,7 +34,7 @@ def test_voxels_in_front_of_the_lidar_depth_are_free_and_at_it_are_not():
     assert free.tolist() == [[True, False, False, False, False, False, False]]
 
 
-def test_a_voxel_seen_at_a_surface_by_another_camera_is_not_carved():
+def test_a_voxel_seen_at_a_surface_by_another_camera_is_not_free():
     cam_to_ego, k = _camera_looking_along_x()
     two = cam_to_ego.repeat(1, 2, 1, 1)
     depth = torch.zeros(1, 2, 4, 4)
@@ -44,25 +44,9 @@ def test_a_voxel_seen_at_a_surface_by_another_camera_is_not_carved():
     assert free_space_targets(centres, two, k.repeat(1, 2, 1, 1), depth, 1.0).tolist() == [[False]]
 
 
-def test_free_space_loss_value_gradient_and_empty_case():
-    opac = torch.tensor([[0.5, 0.2, 0.9]], requires_grad=True)
-    free = torch.tensor([[True, True, False]])
-    loss = free_space_loss(opac, free)
-    expected = -(torch.log(torch.tensor(0.5)) + torch.log(torch.tensor(0.8))) / 2
-    assert loss.item() == pytest.approx(expected.item(), rel=1e-5)
-    loss.backward()
-    assert opac.grad[0, 0] > 0 and opac.grad[0, 2] == 0  # pushes carved opacities down only
-    none = free_space_loss(opac, torch.zeros_like(free))
-    assert none.item() == 0.0 and none.requires_grad
-    # Opacity 1 stays finite (clamped inside the log).
-    assert torch.isfinite(free_space_loss(torch.ones(1, 3), free))
-
-
 def test_validation_names_the_argument():
     cam_to_ego, k = _camera_looking_along_x()
     with pytest.raises(ValueError, match="margin"):
         free_space_targets(torch.zeros(1, 3), cam_to_ego, k, torch.zeros(1, 1, 4, 4), 0.0)
     with pytest.raises(ValueError, match="cam_to_ego"):
         free_space_targets(torch.zeros(1, 3), cam_to_ego, k, torch.zeros(1, 2, 4, 4), 1.0)
-    with pytest.raises(ValueError, match="free"):
-        free_space_loss(torch.zeros(1, 3), torch.zeros(1, 2, dtype=torch.bool))

@@ -8,8 +8,8 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from renderworld.training.bench import expand_points, run_sweep
-from renderworld.training.bench_report import write_outputs
+from renderworld.bench.report import write_outputs
+from renderworld.bench.sweep import expand_points, run_sweep
 
 __all__ = ["run_bench", "bench_points"]
 

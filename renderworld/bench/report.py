@@ -1,4 +1,4 @@
-"""Tables and Pareto plots of a bench sweep (``renderworld.training.bench``).
+"""Tables and Pareto plots of a bench sweep (``renderworld.bench.sweep``).
 
 ``results.csv`` (one row per point, every column), ``results.md`` (a table per stage with ratios
 against the stage's default point) and ``pareto_<stage>.png`` (metric vs training time and vs
@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from renderworld.training.bench import DEFAULT, STAGE_METRICS, format_value
+from renderworld.bench.sweep import DEFAULT, STAGE_METRICS, format_value
 
 __all__ = [
     "pareto_front",

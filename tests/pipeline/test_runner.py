@@ -2,7 +2,7 @@ import sys
 
 import pytest
 
-from renderworld.training.pipeline import PipelineError, Step, run_steps
+from renderworld.pipeline.runner import PipelineError, Step, run_steps
 
 
 def _steps(tmp_path, fail_second=False):
@@ -78,7 +78,7 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
 
     from omegaconf import OmegaConf
 
-    from renderworld.training.pipeline_main import main_job_steps
+    from renderworld.pipeline.main_job import main_job_steps
 
     repo = Path(__file__).resolve().parents[2]
     cfg = OmegaConf.load(repo / "configs" / "pipeline.yaml")

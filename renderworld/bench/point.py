@@ -1,8 +1,8 @@
 """One bench point, in its own process: train, evaluate, time inference, report peak memory.
 
-    python -m renderworld.training.bench_point <point_dir>/spec.json
+    python -m renderworld.bench.point <point_dir>/spec.json
 
-(``renderworld.training.bench.run_point`` writes the spec and starts it.) Writes
+(``renderworld.bench.sweep.run_point`` writes the spec and starts it.) Writes
 ``<point_dir>/result.json``:
 
 * ``metrics``: ``evaluate(cfg)`` of the final ``last.pt`` on the stage's validation split (the
@@ -36,8 +36,8 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from torch.utils.data import DataLoader, Subset
 
+from renderworld.bench.sweep import KNOBS, format_value
 from renderworld.training.api import evaluate, train
-from renderworld.training.bench import KNOBS, format_value
 from renderworld.training.checkpoint import load_checkpoint
 from renderworld.training.registry import get_stage
 
@@ -177,7 +177,7 @@ def run(spec: dict[str, Any]) -> dict[str, Any]:
 
 def main(argv: list[str]) -> None:
     if len(argv) != 2:
-        raise SystemExit("usage: python -m renderworld.training.bench_point <spec.json>")
+        raise SystemExit("usage: python -m renderworld.bench.point <spec.json>")
     run(json.loads(Path(argv[1]).read_text()))
 
 

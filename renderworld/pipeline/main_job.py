@@ -1,0 +1,242 @@
+"""The main job's steps (``tools/run_pipeline.py``, ``make demo``); its report: ``job_report``.
+
+Steps run as subprocesses of the package's own tools, so each is also a command a user can run
+by hand; ``renderworld.pipeline.runner`` skips the ones whose inputs did not change.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from renderworld.constants import SIM_VERSION
+from renderworld.pipeline.job_report import main_job_report
+from renderworld.pipeline.runner import Step, run_steps
+
+__all__ = ["main_job_steps", "run_main_job"]
+
+
+def _train_and_eval(
+    name: str,
+    what: tuple[str, str],
+    experiment: str,
+    args: tuple[str, ...],
+    out: Path,
+    depends_on: tuple[str, ...],
+    inputs: tuple[Path, ...],
+    extra: tuple[str, ...],
+    ckpt: str = "best.pt",
+    evaluate: bool = True,
+) -> list[Step]:
+    """A training step (resumable from its ``last.pt``) and the step evaluating its checkpoint.
+
+    Args:
+        name: training step name; the eval step is ``<name>_eval``.
+        what: (training description, evaluation description).
+        experiment: the Hydra experiment both commands use.
+        args: overrides both commands share (data root, upstream checkpoints ...).
+        out: the pipeline's output folder; runs go to ``<out>/<name>`` and ``<out>/<name>_eval``.
+        depends_on: steps the training reads.
+        inputs: code and configs fingerprinted for the training step.
+        extra: overrides for the training command only.
+        ckpt: the checkpoint file evaluated.
+        evaluate: False: the training step only (another step evaluates its checkpoint).
+    """
+    py, run = sys.executable, out / name
+    base = (f"experiment={experiment}", *args)
+    train = [
+        Step(
+            name,
+            what[0],
+            (py, "tools/train.py", *base, f"run_dir={run}", *extra),
+            run,
+            depends_on=depends_on,
+            inputs=inputs,
+            resume_args=("resume=true",),
+            resume_marker=run / "checkpoints" / "last.pt",
+        )
+    ]
+    if not evaluate:
+        return train
+    return [
+        *train,
+        Step(
+            f"{name}_eval",
+            what[1],
+            (
+                py,
+                "tools/eval.py",
+                *base,
+                f"ckpt={run / 'checkpoints' / ckpt}",
+                f"run_dir={out / (name + '_eval')}",
+            ),  # fmt: skip
+            out / f"{name}_eval",
+            depends_on=(name,),
+        ),
+    ]
+
+
+@dataclass(frozen=True)
+class _Paths:
+    """Where the main job reads and writes, and what each training step fingerprints."""
+
+    repo: Path
+    out: Path
+    data: Path
+    extra: tuple[str, ...]
+
+    @property
+    def common(self) -> tuple[str, ...]:
+        return (f"dataset.data_root={self.data}",)
+
+    def code(self, *packages: str) -> tuple[Path, ...]:
+        return tuple(self.repo / "renderworld" / p for p in packages)
+
+    def configs(self, stage: str, experiment: str) -> tuple[Path, ...]:
+        conf = self.repo / "configs"
+        return (conf / "stage" / f"{stage}.yaml", conf / "experiment" / f"{experiment}.yaml")
+
+    def ckpt(self, step: str) -> Path:
+        return self.out / step / "checkpoints" / "best.pt"
+
+
+def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
+    """The pipeline's steps for a ``configs/pipeline.yaml`` config."""
+    p = _Paths(
+        repo=repo,
+        out=Path(str(cfg.out)).resolve(),
+        data=Path(str(cfg.data_root)).resolve(),
+        extra=tuple(str(x) for x in cfg.train_overrides),
+    )
+    steps = _data_steps(cfg, p) + _occupancy_steps(p)
+    if (repo / "configs" / "stage" / "world_model.yaml").is_file():
+        steps += _world_model_steps(p)
+    return steps
+
+
+def _data_steps(cfg: Any, p: _Paths) -> list[Step]:
+    """Simulate the fixture, then convert it (infos, trajectories, 2-D labels)."""
+    py, conf = sys.executable, p.repo / "configs"
+    return [
+        Step(
+            "fixtures",
+            f"simulate the {cfg.preset} fixture in nuScenes format",
+            (
+                py,
+                "tools/make_fixtures.py",
+                f"out={p.data}",
+                f"preset={cfg.preset}",
+                f"seed={cfg.seed}",
+                "overwrite=true",
+            ),  # fmt: skip
+            p.data,
+            inputs=(*p.code("sim"), conf / "sim"),
+        ),
+        Step(
+            "infos",
+            "convert: infos, ego trajectories, LiDAR-projected 2-D labels",
+            (py, "tools/create_data.py", f"data_root={p.data}", f"version={SIM_VERSION}"),
+            p.data / "renderworld_infos" / SIM_VERSION,
+            depends_on=("fixtures",),
+            inputs=(p.repo / "data_converters", conf / "create_data.yaml"),
+        ),
+    ]
+
+
+def _occupancy_steps(p: _Paths) -> list[Step]:
+    """The tokenizer on GT occupancy; Img2Occ, its evaluation and its pseudo labels."""
+    steps = _train_and_eval(
+        "tokenizer",
+        ("train the AM-VAE tokenizer on GT occupancy",
+         "evaluate tokenizer reconstruction on mini_val"),  # fmt: skip
+        "tokenizer_mini", p.common, p.out, ("infos",),
+        (*p.code("tokenizer"), *p.configs("tokenizer", "tokenizer_mini")), p.extra,
+    )  # fmt: skip
+    steps += _train_and_eval(
+        "img2occ",
+        ("train Img2Occ (semantic Gaussians) from LiDAR-projected 2-D labels",
+         "evaluate 3-D occupancy on mini_val (Occ3D protocol, camera mask)"),  # fmt: skip
+        "img2occ_mini", p.common, p.out, ("infos",),
+        (*p.code("img2occ", "splat"), *p.configs("img2occ", "img2occ_mini")), p.extra,
+    )  # fmt: skip
+    pseudo = p.out / "pseudo_labels"
+    steps.append(
+        Step(
+            "pseudo_labels",
+            "export Img2Occ occupancy as Occ3D-layout pseudo labels",
+            (
+                sys.executable,
+                "tools/export_occ.py",
+                f"ckpt={p.ckpt('img2occ')}",
+                f"data_root={p.data}",
+                f"out={pseudo}",
+            ),  # fmt: skip
+            pseudo,
+            depends_on=("img2occ",),
+        )
+    )
+    return steps
+
+
+def _world_model_steps(p: _Paths) -> list[Step]:
+    """World models of both settings and the one evaluation that scores them with baselines."""
+    pseudo = p.out / "pseudo_labels"
+    tok = (f"stage.tokenizer_ckpt={p.ckpt('tokenizer')}",)
+    wm_inputs = (*p.code("world"), *p.configs("world_model", "world_model_mini"))
+    steps = _train_and_eval(
+        "world_model",
+        ("train the world model on GT occupancy tokens (3D-Occ setting)", ""),
+        "world_model_mini", (*p.common, *tok), p.out, ("tokenizer",), wm_inputs, p.extra,
+        evaluate=False,
+    )  # fmt: skip
+    # Camera setting (paper): its own tokenizer, trained on the pseudo labels; the
+    # world_model_eval step scores it in the Camera rows (camera_tokenizer_ckpt).
+    cam_tok = p.ckpt("tokenizer_camera")
+    steps += _train_and_eval(
+        "tokenizer_camera",
+        ("train the AM-VAE tokenizer on Img2Occ pseudo labels (Camera setting)", ""),
+        "tokenizer_mini", (*p.common, f"stage.occ_root={pseudo}"), p.out, ("pseudo_labels",),
+        (*p.code("tokenizer"), *p.configs("tokenizer", "tokenizer_mini")), p.extra,
+        evaluate=False,
+    )  # fmt: skip
+    steps += _train_and_eval(
+        "world_model_camera",
+        ("train the world model on Img2Occ pseudo labels (Camera setting)", ""),
+        "world_model_mini",
+        (*p.common, f"stage.tokenizer_ckpt={cam_tok}", f"stage.occ_root={pseudo}"), p.out,
+        ("tokenizer_camera", "pseudo_labels"), wm_inputs, p.extra, evaluate=False,
+    )  # fmt: skip
+    # One evaluation, one table: both settings, model and baselines.
+    evaluate = (
+        sys.executable, "tools/eval.py", "experiment=world_model_mini", *p.common, *tok,
+        f"ckpt={p.ckpt('world_model')}", f"pseudo_labels={pseudo}",
+        f"camera_ckpt={p.ckpt('world_model_camera')}", f"camera_tokenizer_ckpt={cam_tok}",
+        f"run_dir={p.out / 'world_model_eval'}",
+    )  # fmt: skip
+    steps.append(
+        Step(
+            "world_model_eval",
+            "forecast and plan on mini_val beside the baselines: 3D-Occ and Camera settings",
+            evaluate,
+            p.out / "world_model_eval",
+            depends_on=("world_model", "tokenizer_camera", "world_model_camera", "pseudo_labels"),
+        )
+    )
+    return steps
+
+
+def run_main_job(cfg: Any, repo: Path) -> Path:
+    """Run every step (skipping up-to-date ones) and write ``<out>/report.md``."""
+    out = Path(str(cfg.out)).resolve()
+    t0 = time.perf_counter()
+    steps = main_job_steps(cfg, repo)
+    print(f"RenderWorld main job: {len(steps)} steps, outputs in {out}")
+    results = run_steps(steps, out / "logs", cwd=repo, force=list(cfg.force))
+    report = main_job_report(cfg, out, results, time.perf_counter() - t0)
+    ran = sum(r.status == "ran" for r in results)
+    print(f"done in {time.perf_counter() - t0:.0f} s ({ran} steps ran, {len(results) - ran} "
+          f"up to date); report: {report}")  # fmt: skip
+    return report
