@@ -168,6 +168,7 @@ class WorldModel(nn.Module):
         displacements: torch.Tensor,
         command: torch.Tensor,
         cache: WorldModelCache | None = None,
+        last_only: bool = False,
     ) -> WorldModelOutput:
         """Teacher-forced next-frame prediction at every position of a window.
 
@@ -181,6 +182,10 @@ class WorldModel(nn.Module):
                 inputs (empty at first): only frames ``F..T-1`` are computed, the outputs cover
                 only them, and the cache is extended to T frames. Results equal the uncached
                 call's last ``T - F`` positions.
+            last_only: compute the code logits of the last position only (``logits`` then
+                hold one position, [B, 1, K_g, h, w]); displacements still cover every
+                position. The up-path and the code heads feed nothing else, so this skips
+                work, not information (the rollout reads only the last position).
 
         Returns:
             :class:`WorldModelOutput` with T (or T - F) predictions (index i predicts frame
@@ -219,6 +224,8 @@ class WorldModel(nn.Module):
         ego = self.ego_block(ego, x, None if cache is None else cache.ego)
         if cache is not None:
             cache.frames = start + t
+        if last_only:  # the up-path and the heads feed only the logits
+            x, skips = x[:, -1:], [sk[:, -1:] for sk in skips]
         for s in reversed(range(cfg.num_scales - 1)):
             x = self.up[s](x, skips[s])
 
