@@ -4,6 +4,7 @@ Usage::
 
     PYTHONPATH=. python benchmarks/bench_planner.py [--device cpu] [--threads 2 1]
         [--reps-mini 20] [--reps-occ3d 3] [--skip-occ3d] [--skip-mini] [--profile-decoder]
+        [--modes today "new full" "new traj" "full bf16" "fast plan"]
         [--mini-tokenizer outputs/demo/tokenizer/checkpoints/best.pt]
         [--mini-world-model outputs/demo/world_model/checkpoints/best.pt]
 
@@ -19,7 +20,7 @@ Modes, all on the same tokenizer and world model weights, one new frame per plan
 * ``new traj``: the same with ``forecast=False`` (no occupancy decode).
 * ``full bf16``: ``new full`` with ``precision="bfloat16"`` (decoder under bf16 autocast;
   the trajectory is float32's). On CPU this uses AVX-512 BF16 where the CPU has it.
-* ``fast plan`` (``--all-modes``): ``Planner(fast=True).plan(request)``, no streaming.
+* ``fast plan`` (``--modes ... "fast plan"``): ``Planner(fast=True).plan(request)``, no streaming.
 
 Cases:
 
@@ -148,7 +149,10 @@ def agreement(models, grid, device: str) -> str:
     return "; ".join(out)
 
 
-def bench_case(models, grid, device: str, reps: int, all_modes: bool) -> dict[str, dict]:
+MODES = ("today", "new full", "new traj", "full bf16", "fast plan")
+
+
+def bench_case(models, grid, device: str, reps: int, wanted) -> dict[str, dict]:
     """Median timings (ms) per mode, rounds interleaved."""
     tok, wm = models
     ref = Planner(tok, wm, device=device, fast=False)
@@ -160,8 +164,8 @@ def bench_case(models, grid, device: str, reps: int, all_modes: bool) -> dict[st
         "new traj": (fast, _run_session(False)),
         "full bf16": (bf16, _run_session(True)),
     }
-    if all_modes:
-        modes["fast plan"] = (fast, _run_fast_plan)
+    modes["fast plan"] = (fast, _run_fast_plan)
+    modes = {k: v for k, v in modes.items() if k in wanted}
     req = make_request(grid, ref.config.history_frames, np.random.default_rng(0))
     sessions = {id(p): PlannerSession(p) for p in (fast, bf16)}
     for session in sessions.values():
@@ -245,7 +249,9 @@ def main() -> None:
     )
     ap.add_argument("--skip-occ3d", action="store_true")
     ap.add_argument("--skip-mini", action="store_true")
-    ap.add_argument("--all-modes", action="store_true", help="also Planner(fast=True).plan")
+    ap.add_argument(
+        "--modes", nargs="+", choices=MODES, default=list(MODES[:4]), help="'today' is needed"
+    )
     ap.add_argument(
         "--profile-decoder", action="store_true", help="only profile the Occ3D decoder (CPU)"
     )
@@ -279,7 +285,7 @@ def main() -> None:
         print(header)
         for threads in args.threads:
             torch.set_num_threads(threads)
-            res = bench_case(models, grid, args.device, reps, args.all_modes)
+            res = bench_case(models, grid, args.device, reps, set(args.modes) | {"today"})
             base = res["today"]["wall"]
             for mode, m in res.items():
                 print(
