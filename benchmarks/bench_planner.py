@@ -1,48 +1,74 @@
-"""Planner latency: ``Planner.plan`` median wall time at the mini grid and at the Occ3D grid.
+"""Planner latency: today's planner and the streaming / trajectory-only / fast planner side by side.
 
 Usage::
 
-    PYTHONPATH=. python benchmarks/bench_planner.py [--device cpu] [--reps 10] [--threads 1 2]
+    PYTHONPATH=. python benchmarks/bench_planner.py [--device cpu] [--threads 2 1]
+        [--reps-mini 20] [--reps-occ3d 3] [--skip-occ3d] [--skip-mini] [--profile-decoder]
+        [--modes today "new full" "new traj" "full bf16" "fast plan"]
         [--mini-tokenizer outputs/demo/tokenizer/checkpoints/best.pt]
         [--mini-world-model outputs/demo/world_model/checkpoints/best.pt]
 
-Cases (both use the real AM-VAE tokenizer and the real world model, no stand-in):
+Modes, all on the same tokenizer and world model weights, one new frame per plan:
 
-* ``mini 50x50x4``: the main job's trained checkpoints (``make demo``: tokenizer_mini and
-  world_model_mini), bundled with ``export_planner_bundle`` and loaded with ``load_planner``,
-  exactly what a user of the planner API runs. Skipped (with a line saying so) when the
-  checkpoints are missing.
-* ``Occ3D 200x200x16``: a tokenizer built at the paper's sizes (``TokenizerConfig()`` defaults:
-  AM-VAE, latent 50x50, 128 channels, 512 codes) and the world model at the stage's default
-  width (D=128, 4 heads, 3 scales x 2 blocks), **untrained weights**: latency depends on the
-  shapes, not on the weights (the rollout's argmax codes change, not the work done).
+* ``today``: ``Planner(fast=False).plan(request)``: the reference path (encodes all five
+  history frames with ``SceneTokenizer.encode``, rolls out, decodes six frames with
+  ``SceneTokenizer.decode``), i.e. what a caller of the PlanRequest API ran before streaming,
+  trajectory-only planning and the fast codec. The world-model rollout code is shared with the
+  new modes (its KV cache changes apply to both).
+* ``new full``: ``PlannerSession`` on ``Planner(fast=True)``: ``push`` the new frame (one encode),
+  ``plan(..., forecast=True)`` (rollout + fast decode of six frames).
+* ``new traj``: the same with ``forecast=False`` (no occupancy decode).
+* ``full bf16``: ``new full`` with ``precision="bfloat16"`` (decoder under bf16 autocast;
+  the trajectory is float32's). On CPU this uses AVX-512 BF16 where the CPU has it.
+* ``fast plan`` (``--modes ... "fast plan"``): ``Planner(fast=True).plan(request)``, no streaming.
 
-Rollout: 5 history frames, 6 steps (KV-cached, as ``Planner.plan`` runs it). Timings are medians
-over ``--reps`` calls after 2 warm-up calls, per torch intra-op thread count; ``encode`` /
-``world`` / ``decode`` are the planner's own stage timings (``PlanResult.timings``).
+Cases:
+
+* ``mini 50x50x4``: the demo's trained checkpoints when present (``make demo``), else
+  **untrained** models of the same sizes (experiment=tokenizer_mini / world_model_mini: AM-VAE
+  latent 25x25, 64 channels, 256 codes, base 32, 1 res block, no attention; world model D=64,
+  2 scales x 1 block). Latency depends on the shapes, not on the weights.
+* ``Occ3D 200x200x16``: AM-VAE at the paper's sizes (``TokenizerConfig()``: latent 50x50,
+  128 channels, 512 codes) + world model D=128, 4 heads, 3 scales x 2 blocks, untrained.
+
+Rounds interleave the modes (one call of each per round) so that load from other processes on
+a shared machine hits every mode alike; figures are medians over rounds after one warm-up
+round, per torch intra-op thread count. ``encode`` / ``world`` / ``decode`` are the planner's
+own stage timings (``PlanResult.timings``), ``wall`` the whole call (session: push + plan).
+OpenMP threads wait passively (``OMP_WAIT_POLICY=PASSIVE``) unless the environment says
+otherwise: spinning threads are several times slower on a busy shared CPU.
 """
 
 from __future__ import annotations
 
 import argparse
-import resource
+import datetime
+import os
+import platform
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-import torch
+# On a CPU shared with other processes, OpenMP threads that spin-wait at every barrier steal
+# the cores their peers need (measured: the mini rollout at 2 threads 685 ms spinning vs 110 ms
+# passive under load ~7). Set before torch loads OpenMP; export OMP_WAIT_POLICY=ACTIVE to compare.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from renderworld.constants import FREE_ID  # noqa: E402
-from renderworld.planning import Planner, PlanRequest, load_planner  # noqa: E402
+from renderworld.planning import Planner, PlannerSession, PlanRequest, load_planner  # noqa: E402
 from renderworld.tokenizer import TokenizerConfig, build_tokenizer  # noqa: E402
 from renderworld.world import WorldModel, WorldModelConfig  # noqa: E402
 
 DEMO = Path("outputs/demo")
+STAGES = ("encode", "world_model", "decode")
 
 
 def make_request(grid, history, rng) -> PlanRequest:
@@ -56,92 +82,219 @@ def make_request(grid, history, rng) -> PlanRequest:
     return PlanRequest(occ, disp, "straight")
 
 
-def mini_planner(tokenizer_ckpt: Path, world_model_ckpt: Path, device: str) -> Planner | None:
-    """The demo's trained planner (bundle written to a temp folder), or None when missing."""
-    if not (tokenizer_ckpt.is_file() and world_model_ckpt.is_file()):
-        return None
-    from renderworld.training.stages.world_model import export_planner_bundle
-
-    with tempfile.TemporaryDirectory() as tmp:
-        bundle = export_planner_bundle(world_model_ckpt, tokenizer_ckpt, Path(tmp) / "p.pt")
-        return load_planner(bundle, device=device)
-
-
-def occ3d_planner(device: str) -> Planner:
-    """Paper-sized AM-VAE + default-width world model at 200x200x16, untrained weights."""
+def _models(tok_cfg: TokenizerConfig, **wm) -> tuple:
     torch.manual_seed(0)
-    tok = build_tokenizer(TokenizerConfig())  # defaults = the paper's Occ3D setting
+    tok = build_tokenizer(tok_cfg)
     cfg = WorldModelConfig(
-        codebook_sizes=tuple(tok.cfg.codebook_sizes), token_grid=tuple(tok.cfg.latent_shape),
-        embed_dim=128, num_heads=4, num_scales=3, layers_per_scale=(2, 2, 2),
+        codebook_sizes=tuple(tok.cfg.codebook_sizes), token_grid=tuple(tok.cfg.latent_shape), **wm
+    )
+    return tok, WorldModel(cfg)
+
+
+def mini_models(tokenizer_ckpt: Path, world_model_ckpt: Path) -> tuple[tuple, str]:
+    """(tokenizer, world model) of the demo when its checkpoints exist, else untrained."""
+    if tokenizer_ckpt.is_file() and world_model_ckpt.is_file():
+        from renderworld.training.stages.world_model import export_planner_bundle
+
+        with tempfile.TemporaryDirectory() as tmp:
+            bundle = export_planner_bundle(world_model_ckpt, tokenizer_ckpt, Path(tmp) / "p.pt")
+            p = load_planner(bundle)
+        return (p.tokenizer, p.world_model), "demo checkpoints"
+    tok = TokenizerConfig(
+        grid_shape=(50, 50, 4), latent_shape=(25, 25), latent_channels=64, codebook_size=256,
+        base_channels=32, num_res_blocks=1, attention=False,
     )  # fmt: skip
-    return Planner(tok, WorldModel(cfg), device=device)
+    models = _models(tok, embed_dim=64, num_heads=4, num_scales=2, layers_per_scale=(1, 1))
+    return models, "untrained, mini sizes (no demo checkpoints)"
 
 
-def bench(planner: Planner, grid, reps: int) -> dict[str, float]:
-    """Median stage timings (ms) of ``planner.plan`` on one request."""
-    req = make_request(grid, planner.config.history_frames, np.random.default_rng(0))
-    for _ in range(2):
-        planner.plan(req)
-    runs = []
-    for _ in range(reps):
+def occ3d_models() -> tuple:
+    """Paper-sized AM-VAE + default-width world model at 200x200x16, untrained weights."""
+    return _models(
+        TokenizerConfig(), embed_dim=128, num_heads=4, num_scales=3, layers_per_scale=(2, 2, 2)
+    )
+
+
+def _run_today(planner: Planner, req: PlanRequest, _session) -> dict:
+    t0 = time.perf_counter()
+    res = planner.plan(req)
+    return {**res.timings, "wall": 1e3 * (time.perf_counter() - t0)}
+
+
+def _run_session(forecast: bool):
+    def run(planner: Planner, req: PlanRequest, session: PlannerSession) -> dict:
         t0 = time.perf_counter()
-        res = planner.plan(req)
-        runs.append({**res.timings, "wall": 1e3 * (time.perf_counter() - t0)})
-    med = {k: statistics.median(r[k] for r in runs) for k in ("encode", "world_model", "decode")}
-    med["wall"] = statistics.median(r["wall"] for r in runs)
-    med["min"] = min(r["wall"] for r in runs)
-    med["params_M"] = (
-        sum(p.numel() for p in planner.world_model.parameters())
-        + sum(p.numel() for p in planner.tokenizer.parameters())
-    ) / 1e6
-    return med
+        session.push(req.occupancy[-1])  # the new frame: one encode
+        res = session.plan(req.ego_displacements, req.command, forecast=forecast)
+        return {**res.timings, "wall": 1e3 * (time.perf_counter() - t0)}
+
+    return run
+
+
+def _run_fast_plan(planner: Planner, req: PlanRequest, _session) -> dict:
+    return _run_today(planner, req, None)
+
+
+def agreement(models, grid, device: str) -> str:
+    """How far the new planner's outputs are from today's on the benchmark request."""
+    tok, wm = models
+    req = make_request(grid, wm.config.history_frames, np.random.default_rng(0))
+    ref = Planner(tok, wm, device=device, fast=False).plan(req)
+    out = []
+    for precision in ("float32", "bfloat16"):
+        new = Planner(tok, wm, device=device, precision=precision).plan(req)
+        dt = float(np.abs(new.trajectory - ref.trajectory).max())
+        agree = float((new.occupancy_forecast == ref.occupancy_forecast).mean())
+        out.append(f"{precision}: max |traj - today| {dt:.2e} m, forecast voxels equal {agree:.6f}")
+    return "; ".join(out)
+
+
+MODES = ("today", "new full", "new traj", "full bf16", "fast plan")
+
+
+def bench_case(models, grid, device: str, reps: int, wanted) -> dict[str, dict]:
+    """Median timings (ms) per mode, rounds interleaved."""
+    tok, wm = models
+    ref = Planner(tok, wm, device=device, fast=False)
+    fast = Planner(tok, wm, device=device, fast=True)
+    bf16 = Planner(tok, wm, device=device, fast=True, precision="bfloat16")
+    modes = {
+        "today": (ref, _run_today),
+        "new full": (fast, _run_session(True)),
+        "new traj": (fast, _run_session(False)),
+        "full bf16": (bf16, _run_session(True)),
+    }
+    modes["fast plan"] = (fast, _run_fast_plan)
+    modes = {k: v for k, v in modes.items() if k in wanted}
+    req = make_request(grid, ref.config.history_frames, np.random.default_rng(0))
+    sessions = {id(p): PlannerSession(p) for p in (fast, bf16)}
+    for session in sessions.values():
+        for frame in req.occupancy[:-1]:
+            session.push(frame)
+    runs: dict[str, list[dict]] = {m: [] for m in modes}
+    for r in range(reps + 1):
+        for name, (planner, run) in modes.items():
+            timing = run(planner, req, sessions.get(id(planner)))
+            if r:  # round 0 warms up
+                runs[name].append(timing)
+    return {
+        name: {k: statistics.median(t[k] for t in ts) for k in (*STAGES, "wall")}
+        for name, ts in runs.items()
+    }
+
+
+def profile_decoder(models, threads: int, rows: int = 12) -> None:
+    """torch.profiler tables of one six-frame decode, reference vs fast codec (CPU)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from renderworld.tokenizer.inference import FastSceneCodec
+    from renderworld.tokenizer.tokens import Tokens
+
+    torch.set_num_threads(threads)
+    tok = models[0].eval()
+    g = torch.Generator().manual_seed(0)
+    idx = torch.stack(
+        [
+            torch.randint(0, k, (6, *tok.cfg.latent_shape), generator=g)
+            for k in tok.cfg.codebook_sizes
+        ],
+        1,
+    )
+    tokens = Tokens(idx, tok.cfg.codebook_sizes, tok.cfg.codebook_names)
+    for name, decode in (("reference", tok.decode), ("fast", FastSceneCodec(tok).decode)):
+        with torch.inference_mode():
+            decode(tokens)
+            t0 = time.perf_counter()
+            with profile(activities=[ProfilerActivity.CPU]) as prof:
+                decode(tokens)
+        print(f"# {name} decode of 6 frames, {threads} thread(s): {time.perf_counter() - t0:.2f} s")
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=rows))
+
+
+def _describe_machine(device: str) -> str:
+    if device.startswith("cuda"):
+        return torch.cuda.get_device_name(device)
+    model = platform.processor() or "cpu"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{model}, {os.cpu_count()} logical CPUs"
+
+
+def _commit() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True,
+            cwd=Path(__file__).resolve().parents[1],
+        )  # fmt: skip
+        dirty = subprocess.run(["git", "status", "--porcelain"], capture_output=True, text=True)
+        return out.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--reps", type=int, default=10)
-    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="torch threads")
+    ap.add_argument("--threads", type=int, nargs="+", default=[2, 1], help="torch threads")
+    ap.add_argument("--reps-mini", type=int, default=20)
+    ap.add_argument("--reps-occ3d", type=int, default=3)
     ap.add_argument("--mini-tokenizer", type=Path, default=DEMO / "tokenizer/checkpoints/best.pt")
     ap.add_argument(
         "--mini-world-model", type=Path, default=DEMO / "world_model/checkpoints/best.pt"
     )
     ap.add_argument("--skip-occ3d", action="store_true")
+    ap.add_argument("--skip-mini", action="store_true")
+    ap.add_argument(
+        "--modes", nargs="+", choices=MODES, default=list(MODES[:4]), help="'today' is needed"
+    )
+    ap.add_argument(
+        "--profile-decoder", action="store_true", help="only profile the Occ3D decoder (CPU)"
+    )
     args = ap.parse_args()
+    if args.profile_decoder:
+        print(f"# load average {os.getloadavg()[0]:.1f}, commit {_commit()}")
+        profile_decoder(occ3d_models(), args.threads[0])
+        return
+    now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     print(
-        f"# Planner.plan latency (ms), device={args.device}, median of {args.reps} calls after "
-        "2 warm-up calls; 5 history frames, 6-step KV-cached rollout, batch 1.\n"
-        "# mini: the demo's trained tokenizer + world model; Occ3D: AM-VAE at the paper's sizes "
-        "(latent 50x50, 128 ch, 512 codes) + world model D=128 3x2 blocks, untrained weights."
+        f"# Planner latency (ms, medians of interleaved rounds after 1 warm-up round), batch 1, "
+        f"5 history frames, 6-step KV-cached rollout\n# {now}, commit {_commit()}, "
+        f"device {args.device}: {_describe_machine(args.device)}, torch {torch.__version__}, "
+        f"load average at start {os.getloadavg()[0]:.1f}, "
+        f"OMP_WAIT_POLICY={os.environ['OMP_WAIT_POLICY']}"
     )
+    cases = []
+    if not args.skip_mini:
+        models, source = mini_models(args.mini_tokenizer, args.mini_world_model)
+        cases.append(("mini 50x50x4", (50, 50, 4), models, source, args.reps_mini))
+    if not args.skip_occ3d:
+        cases.append(("Occ3D 200x200x16", (200, 200, 16), occ3d_models(), "untrained, paper "
+                      "sizes", args.reps_occ3d))  # fmt: skip
     header = (
-        f"{'grid':<18}{'threads':>8}{'tokens':>8}{'params M':>10}{'encode':>9}{'world':>9}"
-        f"{'decode':>9}{'median':>10}{'min':>9}{'plans/s':>9}"
+        f"{'grid':<18}{'thr':>4}  {'mode':<10}{'encode':>9}{'world':>9}{'decode':>9}"
+        f"{'wall':>10}{'plans/s':>9}{'x today':>9}"
     )
-    print(header)
-    for threads in args.threads:
-        torch.set_num_threads(threads)
-        cases = [("mini 50x50x4", mini_planner(args.mini_tokenizer, args.mini_world_model,
-                                               args.device))]  # fmt: skip
-        if not args.skip_occ3d:
-            cases.append(("Occ3D 200x200x16", occ3d_planner(args.device)))
-        for name, planner in cases:
-            if planner is None:
-                print(f"{name:<18}{threads:>8}  skipped: no checkpoints at {args.mini_tokenizer} "
-                      f"/ {args.mini_world_model} (run make demo or pass --mini-*)")  # fmt: skip
-                continue
-            grid = tuple(int(v) for v in name.split()[1].split("x"))
-            m = bench(planner, grid, args.reps)
-            toks = "x".join(map(str, planner.config.token_grid))
-            print(
-                f"{name:<18}{threads:>8}{toks:>8}{m['params_M']:>10.2f}{m['encode']:>9.1f}"
-                f"{m['world_model']:>9.1f}{m['decode']:>9.1f}{m['wall']:>10.1f}{m['min']:>9.1f}"
-                f"{1e3 / m['wall']:>9.2f}",
-                flush=True,
-            )
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"# peak process RSS {rss:.0f} MB")
+    for name, grid, models, source, reps in cases:
+        print(f"# {name}: {source}; {reps} rounds")
+        print(f"# outputs vs today: {agreement(models, grid, args.device)}")
+        print(header)
+        for threads in args.threads:
+            torch.set_num_threads(threads)
+            res = bench_case(models, grid, args.device, reps, set(args.modes) | {"today"})
+            base = res["today"]["wall"]
+            for mode, m in res.items():
+                print(
+                    f"{name:<18}{threads:>4}  {mode:<10}{m['encode']:>9.1f}"
+                    f"{m['world_model']:>9.1f}{m['decode']:>9.1f}{m['wall']:>10.1f}"
+                    f"{1e3 / m['wall']:>9.2f}{base / m['wall']:>9.1f}",
+                    flush=True,
+                )
+    print(f"# load average at end {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":

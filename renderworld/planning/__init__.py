@@ -1,10 +1,10 @@
 """Planner API: ``load_planner(path).plan(PlanRequest(...)) -> PlanResult``.
 
-Light to import: torch and numpy only (no Hydra, no Open3D). Frames and units are in
-:mod:`renderworld.planning.api`.
+Streaming (one encode per new frame): ``PlannerSession(planner)``. Light to import: torch and
+numpy only (no Hydra, no Open3D). Frames and units are in :mod:`renderworld.planning.request`.
 """
 
-from renderworld.planning.api import Planner, PlanRequest, PlanResult
+from renderworld.planning.api import Planner
 from renderworld.planning.bundle import (
     BUNDLE_SCHEMA_VERSION,
     BUNDLE_STAGE,
@@ -13,13 +13,17 @@ from renderworld.planning.bundle import (
     registered_tokenizers,
     save_planner_bundle,
 )
+from renderworld.planning.request import MAX_STEP_DISPLACEMENT_M, PlanRequest, PlanResult
+from renderworld.planning.session import PlannerSession
 
 __all__ = [
     "BUNDLE_SCHEMA_VERSION",
     "BUNDLE_STAGE",
+    "MAX_STEP_DISPLACEMENT_M",
     "PlanRequest",
     "PlanResult",
     "Planner",
+    "PlannerSession",
     "load_planner",
     "register_tokenizer",
     "registered_tokenizers",

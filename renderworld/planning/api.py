@@ -1,98 +1,47 @@
 """The planner API: occupancy history + current command -> 3 s trajectory and forecast.
 
-Conventions (DESIGN.md §3, VAD per-step offsets, FACTS.md):
+Frames and units: :mod:`renderworld.planning.request`. The planner uses the last
+``history_frames`` (5) frames when more are given, and holds the current command fixed through
+the rollout. For a car's loop (one new frame at a time) use
+:class:`renderworld.planning.PlannerSession`, which encodes each frame once.
 
-* ``PlanRequest.occupancy[i]`` is frame i of the history (oldest first, the last one is the
-  current frame t), each in **its own** ego frame on the tokenizer's grid, Occ3D ids (17 free).
-* ``PlanRequest.ego_displacements[i]`` = ``p[i + 1] - p[i]`` in metres, where ``p[k]`` is the
-  ego origin (rear axle) of history frame k expressed in the **current** ego frame
-  (x forward, y left). E.g. driving straight ahead at 10 m/s gives ``[5, 0]`` per row.
-* ``PlanResult.trajectory[k]`` = predicted ``p[t + k + 1]``: positions of the future frames at
-  +0.5 ... +3.0 s in the current ego frame (the cumulative sum of the predicted per-step
-  displacements, the same convention), metres.
-* The planner uses the last ``history_frames`` (5) frames when more are given, and holds the
-  current command fixed through the rollout.
+Execution options (:class:`Planner`):
+
+* ``fast`` (default True): the package's :class:`SceneTokenizer` runs through
+  :class:`renderworld.tokenizer.inference.FastSceneCodec` (channels-last, no full-resolution
+  log-probabilities); ``fast=False`` runs ``tokenizer.encode`` / ``tokenizer.decode``, the
+  reference path (and the only path for other tokenizers).
+* ``precision``: ``"float32"`` (default) or ``"bfloat16"``: ``torch.autocast`` around the
+  occupancy decoder only, the FLOP-heavy stage. The encoder and the world model stay float32,
+  so history tokens and trajectories are exactly those of float32 (bf16 in the rollout moved
+  waypoints by up to ~2 % of the path with untrained weights, and the rollout is launch-bound,
+  not FLOP-bound, on a GPU). Only forecast voxels can change (tests bound the fraction).
+* ``compile``: None (default) or a ``torch.compile`` mode for the decoder (``"default"``,
+  ``"reduce-overhead"`` = CUDA graphs on a GPU, ``"max-autotune"``); if compiling fails the
+  planner warns once and runs eagerly.
+* ``pin_memory``: copy the forecast into pinned host memory (CUDA only; default on for CUDA).
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
-from dataclasses import dataclass, field
+import warnings
 
 import numpy as np
 import torch
 
-from renderworld.constants import COMMANDS, FREE_ID, HISTORY_FRAMES
+from renderworld.constants import COMMANDS
+from renderworld.planning.request import PlanRequest, PlanResult, as_numpy
+from renderworld.tokenizer import SceneTokenizer
+from renderworld.tokenizer.inference import FastSceneCodec
 from renderworld.tokenizer.tokens import Tokens
 from renderworld.world.model import WorldModel
 
 __all__ = ["PlanRequest", "PlanResult", "Planner"]
 
-
-def _as_numpy(x, name: str) -> np.ndarray:
-    if isinstance(x, np.ndarray):
-        return x
-    if isinstance(x, torch.Tensor):
-        return x.detach().cpu().numpy()
-    raise TypeError(f"{name}: expected a numpy array or torch tensor, got {type(x).__name__}")
-
-
-@dataclass(frozen=True)
-class PlanRequest:
-    """One planning query (validated on construction; see the module docstring for frames).
-
-    Attributes:
-        occupancy: [T, X, Y, Z] uint8 Occ3D ids (<= 17), T >= 5, oldest first.
-        ego_displacements: [T-1, 2] float metres, current ego frame.
-        command: ``"left"``, ``"right"`` or ``"straight"`` (the current command).
-    """
-
-    occupancy: np.ndarray
-    ego_displacements: np.ndarray
-    command: str
-
-    def __post_init__(self) -> None:
-        occ = _as_numpy(self.occupancy, "occupancy")
-        if occ.dtype != np.uint8:
-            raise ValueError(f"occupancy: expected dtype uint8, got {occ.dtype}")
-        if occ.ndim != 4 or min(occ.shape) < 1:
-            raise ValueError(f"occupancy: expected shape [T, X, Y, Z], got {occ.shape}")
-        if occ.shape[0] < HISTORY_FRAMES:
-            raise ValueError(
-                f"occupancy: expected at least {HISTORY_FRAMES} history frames, got {occ.shape[0]}"
-            )
-        if int(occ.max()) > FREE_ID:
-            raise ValueError(
-                f"occupancy: expected class ids in [0, {FREE_ID}], got max {int(occ.max())}"
-            )
-        disp = _as_numpy(self.ego_displacements, "ego_displacements")
-        if not np.issubdtype(disp.dtype, np.floating):
-            raise ValueError(f"ego_displacements: expected a float dtype, got {disp.dtype}")
-        if disp.shape != (occ.shape[0] - 1, 2):
-            raise ValueError(
-                f"ego_displacements: expected shape [T-1, 2] = [{occ.shape[0] - 1}, 2], "
-                f"got {disp.shape}"
-            )
-        if not np.isfinite(disp).all():
-            raise ValueError("ego_displacements: expected finite values, got NaN or inf")
-        if not isinstance(self.command, str) or self.command not in COMMANDS:
-            raise ValueError(f"command: expected one of {COMMANDS}, got {self.command!r}")
-
-
-@dataclass(frozen=True)
-class PlanResult:
-    """Planner output.
-
-    Attributes:
-        trajectory: [S, 2] float32 metres, positions at +0.5 ... +S/2 s in the current ego frame.
-        occupancy_forecast: [S, X, Y, Z] uint8, frame t+k+1 in its own (predicted) ego frame.
-        timings: milliseconds: ``encode``, ``world_model``, ``decode``, ``total`` (for a
-            batch: the whole batch's times) and ``batch_size``.
-    """
-
-    trajectory: np.ndarray
-    occupancy_forecast: np.ndarray
-    timings: dict = field(default_factory=dict)
+PRECISIONS = {"float32": None, "bfloat16": torch.bfloat16}
+COMPILE_MODES = (None, "default", "reduce-overhead", "max-autotune")
 
 
 class Planner:
@@ -105,34 +54,167 @@ class Planner:
         world_model: :class:`renderworld.world.WorldModel` whose codebooks and token grid match
             the tokenizer's.
         device: where both run.
+        fast: use the fast inference codec for a :class:`SceneTokenizer` (see module doc).
+        precision: ``"float32"`` or ``"bfloat16"`` (the decoder's autocast dtype).
+        compile: None or a ``torch.compile`` mode for the decoder.
+        pin_memory: pinned host memory for the forecast copy (None: on for CUDA devices).
     """
 
-    def __init__(self, tokenizer, world_model: WorldModel, device: str | torch.device = "cpu"):
+    def __init__(
+        self,
+        tokenizer,
+        world_model: WorldModel,
+        device: str | torch.device = "cpu",
+        *,
+        fast: bool = True,
+        precision: str = "float32",
+        compile: str | None = None,
+        pin_memory: bool | None = None,
+    ):
         for name in ("encode", "decode"):
             if not callable(getattr(tokenizer, name, None)):
                 raise TypeError(f"tokenizer: expected an object with a callable .{name}()")
         if not isinstance(world_model, WorldModel):
             raise TypeError(f"world_model: expected WorldModel, got {type(world_model).__name__}")
+        if not isinstance(fast, bool):
+            raise TypeError(f"fast: expected a bool, got {fast!r}")
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision: expected one of {tuple(PRECISIONS)}, got {precision!r}")
+        if compile not in COMPILE_MODES:
+            raise ValueError(f"compile: expected one of {COMPILE_MODES}, got {compile!r}")
         self.device = torch.device(device)
+        if pin_memory is None:
+            pin_memory = self.device.type == "cuda"
+        if pin_memory and self.device.type != "cuda":
+            raise ValueError(f"pin_memory: only applies to CUDA devices, got {self.device}")
         self.tokenizer = tokenizer
         self.world_model = world_model.to(self.device).eval()
         if isinstance(tokenizer, torch.nn.Module):
             self.tokenizer = tokenizer.to(self.device).eval()
         self.config = world_model.config
+        self.fast, self.precision, self.compile = fast, precision, compile
+        self.pin_memory = bool(pin_memory)
+        use_codec = fast and isinstance(tokenizer, SceneTokenizer)
+        codec = FastSceneCodec(self.tokenizer) if use_codec else None
+        self._encode_fn = codec.encode if codec else self.tokenizer.encode
+        self._decode_fn = codec.decode if codec else self.tokenizer.decode
+        self._names: tuple[str, ...] = ()  # codebook names, from the tokenizer's first encode
+        self._compiled = None
+        if compile is not None:
+            self._compiled = torch.compile(self._decode_fn, mode=compile, dynamic=False)
 
+    # ------------------------------------------------------------------ stages
     def _sync(self) -> float:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
         return time.perf_counter()
 
-    def plan(self, request: PlanRequest) -> PlanResult:
-        """Plan for one request (see :meth:`plan_batch`)."""
-        return self.plan_batch([request])[0]
+    def _autocast(self):
+        dtype = PRECISIONS[self.precision]
+        if dtype is None:
+            return contextlib.nullcontext()
+        return torch.autocast(self.device.type, dtype=dtype)
 
-    def plan_batch(self, requests) -> list[PlanResult]:
+    def encode(self, occ: torch.Tensor) -> Tokens:
+        """Occupancy [N, X, Y, Z] uint8 (on ``device``) -> checked :class:`Tokens` [N, G, h, w]."""
+        tokens = self._encode_fn(occ)
+        self._check_tokens(tokens, occ.shape[0])
+        return tokens
+
+    def _decode(self, tokens: Tokens) -> torch.Tensor:
+        if self._compiled is not None:
+            try:
+                return self._compiled(tokens)
+            except Exception as err:  # compiler missing or op unsupported: run eagerly
+                warnings.warn(
+                    f"compile={self.compile!r}: torch.compile failed ({type(err).__name__}: "
+                    f"{str(err)[:200]}); running the decoder eagerly",
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
+                self._compiled = None
+        return self._decode_fn(tokens)
+
+    def _plan_tokens(
+        self,
+        history_tokens: torch.Tensor,
+        displacements: np.ndarray,
+        commands: list[str],
+        forecast: bool = True,
+        encode_ms: float = 0.0,
+    ) -> list[PlanResult]:
+        """Roll out from already encoded history tokens (shared by :meth:`plan_batch` and
+        :class:`renderworld.planning.PlannerSession`; inputs are assumed validated).
+
+        Args:
+            history_tokens: [B, H, G, h, w] int64 on ``device``, H = ``history_frames``,
+                from :meth:`encode`.
+            displacements: [B, H-1, 2] float metres, current ego frame.
+            commands: B commands.
+            forecast: also decode the forecast occupancy (False: trajectory only, no decode).
+            encode_ms: time already spent encoding, reported in the timings.
+        """
+        b = history_tokens.shape[0]
+        s = self.config.future_frames
+        cmd = torch.tensor([COMMANDS.index(c) for c in commands], device=self.device)
+        disp = torch.from_numpy(np.asarray(displacements, dtype=np.float32)).to(self.device)
+        with torch.inference_mode():
+            t1 = self._sync()
+            out = self.world_model.rollout(history_tokens, disp, cmd, steps=s)
+            traj = out.trajectory.float().cpu().numpy()
+            t2 = self._sync()
+            occ = None
+            if forecast:
+                fut = Tokens(
+                    out.tokens.reshape(b * s, *out.tokens.shape[2:]),
+                    tuple(self.config.codebook_sizes),
+                    self._names,
+                )
+                with self._autocast():
+                    dec = self._decode(fut)
+                occ = self._to_host(dec, b * s)
+            t3 = self._sync()
+        timings = {
+            "encode": encode_ms,
+            "world_model": 1e3 * (t2 - t1),
+            "decode": 1e3 * (t3 - t2),
+            "total": encode_ms + 1e3 * (t3 - t1),
+            "batch_size": b,
+        }
+        grid = None if occ is None else occ.shape[1:]
+        return [
+            PlanResult(traj[i], None if occ is None else occ.reshape(b, s, *grid)[i], dict(timings))
+            for i in range(b)
+        ]
+
+    def _to_host(self, dec, n: int) -> np.ndarray:
+        if not isinstance(dec, torch.Tensor) or dec.dim() != 4 or dec.shape[0] != n:
+            raise ValueError(
+                f"tokenizer: decode returned {getattr(dec, 'shape', type(dec))}, "
+                f"expected [{n}, X, Y, Z]"
+            )
+        dec = dec.to(torch.uint8)
+        if self.pin_memory and dec.device.type == "cuda":
+            host = torch.empty(dec.shape, dtype=torch.uint8, pin_memory=True)
+            host.copy_(dec, non_blocking=True)
+            torch.cuda.current_stream(dec.device).synchronize()
+            return host.numpy()
+        return dec.cpu().numpy()
+
+    # ------------------------------------------------------------------ public
+    def plan(self, request: PlanRequest, forecast: bool = True) -> PlanResult:
+        """Plan for one request (see :meth:`plan_batch`)."""
+        return self.plan_batch([request], forecast=forecast)[0]
+
+    def plan_batch(self, requests, forecast: bool = True) -> list[PlanResult]:
         """Plan for several requests in one batch (their grids must match).
 
         Inputs are never modified: the history is copied before use.
+
+        Args:
+            requests: :class:`PlanRequest` objects.
+            forecast: also decode the occupancy forecast; False gives a trajectory-only plan
+                (no occupancy decode, ``occupancy_forecast`` None, the same trajectory).
 
         Raises:
             TypeError: a request is not a :class:`PlanRequest`.
@@ -144,62 +226,33 @@ class Planner:
         for i, r in enumerate(reqs):
             if not isinstance(r, PlanRequest):
                 raise TypeError(f"requests[{i}]: expected PlanRequest, got {type(r).__name__}")
-        cfg = self.config
-        h = cfg.history_frames
-        grid = _as_numpy(reqs[0].occupancy, "occupancy").shape[1:]
+        if not isinstance(forecast, bool):
+            raise TypeError(f"forecast: expected a bool, got {forecast!r}")
+        h = self.config.history_frames
+        grid = as_numpy(reqs[0].occupancy, "occupancy").shape[1:]
         for i, r in enumerate(reqs):
             if r.occupancy.shape[0] < h:
                 raise ValueError(
                     f"requests[{i}].occupancy: the world model needs {h} history frames, "
                     f"got {r.occupancy.shape[0]}"
                 )
-            if _as_numpy(r.occupancy, "occupancy").shape[1:] != grid:
+            if as_numpy(r.occupancy, "occupancy").shape[1:] != grid:
                 raise ValueError(
                     f"requests[{i}].occupancy: expected grid {grid} like requests[0], "
                     f"got {r.occupancy.shape[1:]}"
                 )
         # np.stack copies: the requests' arrays are never written to.
-        occ = np.stack([_as_numpy(r.occupancy, "occupancy")[-h:] for r in reqs])
+        occ = np.stack([as_numpy(r.occupancy, "occupancy")[-h:] for r in reqs])
         disp = np.stack(
-            [_as_numpy(r.ego_displacements, "ego_displacements")[-(h - 1) :] for r in reqs]
+            [as_numpy(r.ego_displacements, "ego_displacements")[-(h - 1) :] for r in reqs]
         ).astype(np.float32)
         b = len(reqs)
-        cmd = torch.tensor([COMMANDS.index(r.command) for r in reqs], device=self.device)
-
         with torch.inference_mode():
             t0 = self._sync()
-            occ_t = torch.from_numpy(occ).to(self.device).reshape(b * h, *grid)
-            tokens = self.tokenizer.encode(occ_t)
-            self._check_tokens(tokens, b * h)
-            t1 = self._sync()
-            idx = tokens.indices.reshape(b, h, *tokens.indices.shape[1:])
-            out = self.world_model.rollout(
-                idx, torch.from_numpy(disp).to(self.device), cmd, steps=cfg.future_frames
-            )
-            t2 = self._sync()
-            s = cfg.future_frames
-            fut = Tokens(
-                out.tokens.reshape(b * s, *out.tokens.shape[2:]),
-                tokens.codebook_sizes,
-                tokens.codebook_names,
-            )
-            dec = self.tokenizer.decode(fut)
-            t3 = self._sync()
-        if not isinstance(dec, torch.Tensor) or tuple(dec.shape) != (b * s, *grid):
-            raise ValueError(
-                f"tokenizer: decode returned {getattr(dec, 'shape', type(dec))}, "
-                f"expected [{b * s}, {', '.join(map(str, grid))}]"
-            )
-        forecast = dec.to(torch.uint8).reshape(b, s, *grid).cpu().numpy()
-        traj = out.trajectory.float().cpu().numpy()
-        timings = {
-            "encode": 1e3 * (t1 - t0),
-            "world_model": 1e3 * (t2 - t1),
-            "decode": 1e3 * (t3 - t2),
-            "total": 1e3 * (t3 - t0),
-            "batch_size": b,
-        }
-        return [PlanResult(traj[i], forecast[i], dict(timings)) for i in range(b)]
+            tokens = self.encode(torch.from_numpy(occ).to(self.device).reshape(b * h, *grid))
+            encode_ms = 1e3 * (self._sync() - t0)
+        idx = tokens.indices.reshape(b, h, *tokens.indices.shape[1:])
+        return self._plan_tokens(idx, disp, [r.command for r in reqs], forecast, encode_ms)
 
     def _check_tokens(self, tokens, n: int) -> None:
         cfg = self.config
@@ -216,3 +269,4 @@ class Planner:
                 f"tokenizer: token indices {tuple(tokens.indices.shape)} do not match the "
                 f"world model's expected {want}"
             )
+        self._names = tuple(tokens.codebook_names)

@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from renderworld.planning.api import Planner
+from renderworld.tokenizer import SceneTokenizer, build_tokenizer
 from renderworld.world.config import WorldModelConfig
 from renderworld.world.model import WorldModel
 
@@ -105,10 +106,8 @@ def register_tokenizer(
 
 
 def _register_builtin() -> None:
-    """Register the package's own tokenizer as ``"scene_tokenizer"`` (imported on first use)."""
+    """Register the package's own tokenizer as ``"scene_tokenizer"``."""
     if "scene_tokenizer" not in _REGISTRY:
-        from renderworld.tokenizer import SceneTokenizer, build_tokenizer
-
         register_tokenizer("scene_tokenizer", SceneTokenizer, from_config=build_tokenizer)
 
 
@@ -181,41 +180,92 @@ def _require_keys(d, keys: set[str], where: str) -> None:
         raise ValueError(f"{where}: expected keys {sorted(keys)}, got {sorted(map(str, d))}")
 
 
-def load_planner(ckpt_path: str | os.PathLike, device: str | torch.device = "cpu") -> Planner:
+def _read_bundle(path: Path) -> dict:
+    """``torch.load`` (weights only) that turns every way a file can be unreadable into one
+    ``ValueError`` naming the file."""
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # truncated zip, random bytes, JSON, pickled code, ...
+        first = str(err).strip().splitlines()[0][:200] if str(err).strip() else ""
+        raise ValueError(
+            f"ckpt_path {path}: not a readable planner bundle (torch.load with "
+            f"weights_only=True failed: {type(err).__name__}: {first})"
+        ) from err
+    if not isinstance(data, dict) or "stage" not in data:
+        got = sorted(map(str, data)) if isinstance(data, dict) else type(data).__name__
+        raise ValueError(
+            f"ckpt_path {path}: not a planner bundle (expected a dict with keys "
+            f"['schema_version', 'stage', 'tokenizer', 'world_model'], got {got})"
+        )
+    return data
+
+
+def load_planner(
+    ckpt_path: str | os.PathLike, device: str | torch.device = "cpu", **planner_options
+) -> Planner:
     """Load a bundle written by :func:`save_planner_bundle` into a :class:`Planner`.
 
     Loads with ``torch.load(weights_only=True)`` and ``load_state_dict(strict=True)``.
 
+    Args:
+        ckpt_path: the bundle file.
+        device: where the planner runs.
+        **planner_options: passed to :class:`Planner` (``fast``, ``precision``, ``compile``,
+            ``pin_memory``).
+
     Raises:
-        ValueError: missing file, wrong stage/schema, unknown keys, unregistered tokenizer kind,
-            or state dicts that do not match the configs.
+        ValueError: naming the file, for a missing file, a file torch cannot read (truncated,
+            random bytes, JSON, pickled code), a foreign checkpoint (other keys, stage or
+            schema), an unregistered tokenizer kind, a config the builders refuse, or state
+            dicts that do not match the configs.
     """
     path = Path(ckpt_path)
     if not path.is_file():
         raise ValueError(f"ckpt_path: no such file {path}")
-    data = torch.load(path, map_location="cpu", weights_only=True)
-    _require_keys(data, {"schema_version", "stage", "tokenizer", "world_model"}, str(path))
+    data = _read_bundle(path)
     if data["stage"] != BUNDLE_STAGE:
-        raise ValueError(f"{path}: expected stage {BUNDLE_STAGE!r}, got {data['stage']!r}")
+        raise ValueError(
+            f"ckpt_path {path}: expected stage {BUNDLE_STAGE!r}, got {data['stage']!r}"
+        )
+    _require_keys(
+        data, {"schema_version", "stage", "tokenizer", "world_model"}, f"ckpt_path {path}"
+    )
     if data["schema_version"] != BUNDLE_SCHEMA_VERSION:
         raise ValueError(
-            f"{path}: expected schema_version {BUNDLE_SCHEMA_VERSION}, "
+            f"ckpt_path {path}: expected schema_version {BUNDLE_SCHEMA_VERSION}, "
             f"got {data['schema_version']!r}"
         )
     tok, wm = data["tokenizer"], data["world_model"]
-    _require_keys(tok, {"kind", "config", "state_dict"}, f"{path}: tokenizer")
-    _require_keys(wm, {"config", "state_dict"}, f"{path}: world_model")
+    _require_keys(tok, {"kind", "config", "state_dict"}, f"ckpt_path {path}: tokenizer")
+    _require_keys(wm, {"config", "state_dict"}, f"ckpt_path {path}: world_model")
     _register_builtin()
-    if tok["kind"] not in _REGISTRY:
+    if not isinstance(tok["kind"], str) or tok["kind"] not in _REGISTRY:
         raise ValueError(
-            f"{path}: tokenizer kind {tok['kind']!r} is not registered "
+            f"ckpt_path {path}: tokenizer kind {tok['kind']!r} is not registered "
             f"(known: {registered_tokenizers()}); call register_tokenizer first"
         )
-    tokenizer = _REGISTRY[tok["kind"]].from_config(tok["config"])
-    world_model = WorldModel(WorldModelConfig.from_dict(wm["config"]))
+    for where, d in (("tokenizer", tok), ("world_model", wm)):
+        if not isinstance(d["config"], dict):
+            raise ValueError(
+                f"ckpt_path {path}: {where} config: expected a dict, "
+                f"got {type(d['config']).__name__}"
+            )
+        sd = d["state_dict"]
+        if not isinstance(sd, dict) or not all(isinstance(v, torch.Tensor) for v in sd.values()):
+            raise ValueError(f"ckpt_path {path}: {where} state_dict: expected a dict of tensors")
+    try:  # a registered builder may fail in any way on a config read from a file
+        tokenizer = _REGISTRY[tok["kind"]].from_config(tok["config"])
+    except Exception as err:
+        raise ValueError(
+            f"ckpt_path {path}: tokenizer config refused: {type(err).__name__}: {err}"
+        ) from err
+    try:
+        world_model = WorldModel(WorldModelConfig.from_dict(wm["config"]))
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"ckpt_path {path}: world_model config refused: {err}") from err
     try:
         tokenizer.load_state_dict(tok["state_dict"], strict=True)
         world_model.load_state_dict(wm["state_dict"], strict=True)
     except RuntimeError as err:
-        raise ValueError(f"{path}: state dict does not match its config: {err}") from err
-    return Planner(tokenizer, world_model, device=device)
+        raise ValueError(f"ckpt_path {path}: state dict does not match its config: {err}") from err
+    return Planner(tokenizer, world_model, device=device, **planner_options)

@@ -42,7 +42,10 @@ class CausalSelfAttention(nn.Module):
     With ``cache`` (a dict, initially empty) the keys/values of earlier calls are kept and the
     ``T`` new positions follow them: new position ``j`` attends to every cached position and
     to new positions ``<= j``. Feeding a sequence in pieces gives the same result as feeding
-    it whole (the rollout's KV cache; the whole-sequence call is the reference).
+    it whole (the rollout's KV cache; the whole-sequence call is the reference). The cache
+    holds buffers ``k``, ``v`` [N, heads, capacity, hd] of which the first ``n`` positions are
+    valid; capacity doubles when full, so appending a frame copies that frame only (not the
+    whole history, as a concatenation would).
     """
 
     def __init__(self, dim: int, num_heads: int):
@@ -51,17 +54,33 @@ class CausalSelfAttention(nn.Module):
         self.qkv = nn.Linear(dim, 3 * dim)
         self.proj = nn.Linear(dim, dim)
 
+    @staticmethod
+    def _append(cache: dict, k: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Append k, v [N, heads, T, hd] to the cache; return all valid keys/values (views)."""
+        past, t = cache.get("n", 0), k.shape[2]
+        buf = cache.get("k")
+        if buf is None or buf.shape[2] < past + t or buf.shape[0] != k.shape[0]:
+            cap = max(2 * (past + t), 2 * (0 if buf is None else buf.shape[2]))
+            shape = (*k.shape[:2], cap, k.shape[3])
+            new_k = k.new_empty(shape)
+            new_v = v.new_empty(shape)
+            if past:
+                new_k[:, :, :past] = buf[:, :, :past]
+                new_v[:, :, :past] = cache["v"][:, :, :past]
+            cache["k"], cache["v"] = new_k, new_v
+        cache["k"][:, :, past : past + t] = k
+        cache["v"][:, :, past : past + t] = v
+        cache["n"] = past + t
+        return cache["k"][:, :, : past + t], cache["v"][:, :, : past + t]
+
     def forward(self, x: torch.Tensor, cache: dict | None = None) -> torch.Tensor:
         n, t, d = x.shape
         q, k, v = self.qkv(x).view(n, t, 3, self.num_heads, d // self.num_heads).unbind(2)
         q, k, v = q.transpose(1, 2), k.transpose(1, 2), v.transpose(1, 2)  # [N, heads, T, hd]
         past = 0
         if cache is not None:
-            if "k" in cache:
-                past = cache["k"].shape[2]
-                k = torch.cat([cache["k"], k], dim=2)
-                v = torch.cat([cache["v"], v], dim=2)
-            cache["k"], cache["v"] = k, v
+            past = cache.get("n", 0)
+            k, v = self._append(cache, k, v)
         if past == 0:
             out = F.scaled_dot_product_attention(q, k, v, is_causal=True)
         elif t == 1:

@@ -21,7 +21,7 @@ motion from frame ``i`` to ``i + 1``), made from frames ``<= i`` only.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -30,7 +30,9 @@ from torch import nn
 from renderworld.constants import COMMANDS
 from renderworld.precision import autocast_off, to_float32
 from renderworld.world.blocks import Downsample, EgoTemporalBlock, SceneBlock, UpFuse
+from renderworld.world.cache import WorldModelCache
 from renderworld.world.config import WorldModelConfig
+from renderworld.world.rollout import RolloutOutput, rollout
 
 __all__ = [
     "NUM_EGO_FEATURES",
@@ -58,21 +60,6 @@ class WorldModelOutput:
     logits: list[torch.Tensor]
     displacement: torch.Tensor
     displacement_modes: torch.Tensor
-
-
-@dataclass
-class WorldModelCache:
-    """Keys/values of the frames already processed (the rollout's KV cache).
-
-    Attributes:
-        frames: number of leading frames whose features are cached.
-        scene: per scale, per block, the attention cache dict of that :class:`SceneBlock`.
-        ego: the cache dict of the ego temporal attention.
-    """
-
-    frames: int = 0
-    scene: list = field(default_factory=list)
-    ego: dict = field(default_factory=dict)
 
 
 def ego_features(
@@ -191,6 +178,7 @@ class WorldModel(nn.Module):
         displacements: torch.Tensor,
         command: torch.Tensor,
         cache: WorldModelCache | None = None,
+        last_only: bool = False,
     ) -> WorldModelOutput:
         """Teacher-forced next-frame prediction at every position of a window.
 
@@ -204,6 +192,10 @@ class WorldModel(nn.Module):
                 inputs (empty at first): only frames ``F..T-1`` are computed, the outputs cover
                 only them, and the cache is extended to T frames. Results equal the uncached
                 call's last ``T - F`` positions.
+            last_only: compute the code logits of the last position only (``logits`` then
+                hold one position, [B, 1, K_g, h, w]); displacements still cover every
+                position. The up-path and the code heads feed nothing else, so this skips
+                work, not information (the rollout reads only the last position).
 
         Returns:
             :class:`WorldModelOutput` with T (or T - F) predictions (index i predicts frame
@@ -242,6 +234,8 @@ class WorldModel(nn.Module):
         ego = self.ego_block(ego, x, None if cache is None else cache.ego)
         if cache is not None:
             cache.frames = start + t
+        if last_only:  # the up-path and the heads feed only the logits
+            x, skips = x[:, -1:], [sk[:, -1:] for sk in skips]
         for s in reversed(range(cfg.num_scales - 1)):
             x = self.up[s](x, skips[s])
 
@@ -268,10 +262,8 @@ class WorldModel(nn.Module):
         command: torch.Tensor,
         steps: int | None = None,
         use_cache: bool = True,
-    ):
+    ) -> RolloutOutput:
         """Autoregressive forecast; see :func:`renderworld.world.rollout.rollout`."""
-        from renderworld.world.rollout import rollout
-
         return rollout(
             self,
             history_tokens,

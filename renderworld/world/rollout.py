@@ -8,8 +8,10 @@ feeds the GT future command during rollout, a leak; FACTS.md). The context keeps
 and 6 steps it never has to drop a frame.
 
 With ``use_cache`` (default) each step computes only the new frame, reusing the attention
-keys/values of earlier frames (:class:`renderworld.world.model.WorldModelCache`); the
-reference is ``use_cache=False``, which recomputes the whole window every step. Once the
+keys/values of earlier frames (:class:`renderworld.world.cache.WorldModelCache`), and the code
+logits of the last position only (``last_only``: the first step's up-path skips the four
+earlier history frames); the reference is ``use_cache=False``, which recomputes the whole
+window and every position's logits every step. Once the
 context would exceed ``max_frames`` the window slides, positions shift, and the rollout falls
 back to recomputing.
 """
@@ -20,7 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
-from renderworld.world.model import WorldModelCache
+from renderworld.world.cache import WorldModelCache
 
 __all__ = ["RolloutOutput", "rollout"]
 
@@ -82,7 +84,7 @@ def rollout(
         if cache is not None and tokens.shape[1] > max_frames:
             cache = None  # the window slides from here on: recompute
         if cache is not None:
-            out = model(tokens, disps, command, cache=cache)
+            out = model(tokens, disps, command, cache=cache, last_only=True)
         else:
             ctx = min(tokens.shape[1], max_frames)
             out = model(tokens[:, -ctx:], disps[:, disps.shape[1] - (ctx - 1) :], command)

@@ -27,9 +27,9 @@ def test_rollout_feeds_back_own_predictions_and_holds_command(monkeypatch):
     calls = []
     original = WorldModel.forward
 
-    def spy(self, tok, d, c, cache=None):
+    def spy(self, tok, d, c, cache=None, **kwargs):
         calls.append((tok.clone(), d.clone(), c.clone()))
-        return original(self, tok, d, c, cache=cache)
+        return original(self, tok, d, c, cache=cache, **kwargs)
 
     monkeypatch.setattr(WorldModel, "forward", spy)
     out = rollout(m, tokens, disp, cmd, steps=6)

@@ -1,0 +1,137 @@
+"""Planner requests and results, and the checks every way into the planner shares.
+
+Conventions (DESIGN.md §3, VAD per-step offsets, FACTS.md):
+
+* ``PlanRequest.occupancy[i]`` is frame i of the history (oldest first, the last one is the
+  current frame t), each in **its own** ego frame on the tokenizer's grid, Occ3D ids (17 free).
+* ``PlanRequest.ego_displacements[i]`` = ``p[i + 1] - p[i]`` in metres, where ``p[k]`` is the
+  ego origin (rear axle) of history frame k expressed in the **current** ego frame
+  (x forward, y left). E.g. driving straight ahead at 10 m/s gives ``[5, 0]`` per row.
+* ``PlanResult.trajectory[k]`` = predicted ``p[t + k + 1]``: positions of the future frames at
+  +0.5 ... +3.0 s in the current ego frame (the cumulative sum of the predicted per-step
+  displacements, the same convention), metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from renderworld.constants import COMMANDS, FREE_ID, HISTORY_FRAMES, KEYFRAME_DT
+
+__all__ = [
+    "MAX_STEP_DISPLACEMENT_M",
+    "PlanRequest",
+    "PlanResult",
+    "check_command",
+    "check_displacements",
+    "check_occupancy",
+]
+
+#: Largest accepted length (metres) of one history step ``d[i]`` (one keyframe interval,
+#: 0.5 s): 50 m per 0.5 s is 100 m/s = 360 km/h, beyond any road vehicle; a longer step is a
+#: unit or frame error (e.g. global coordinates or millimetres), not driving.
+MAX_STEP_DISPLACEMENT_M: float = 50.0
+
+
+def as_numpy(x, name: str) -> np.ndarray:
+    """A numpy view of ``x`` (numpy array or torch tensor); TypeError naming ``name`` else."""
+    if isinstance(x, np.ndarray):
+        return x
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu().numpy()
+    raise TypeError(f"{name}: expected a numpy array or torch tensor, got {type(x).__name__}")
+
+
+def check_occupancy(occ, name: str = "occupancy", min_frames: int = HISTORY_FRAMES) -> np.ndarray:
+    """Validate an occupancy history [T, X, Y, Z] uint8 Occ3D ids, T >= ``min_frames``.
+
+    Returns:
+        The array (numpy view, not copied).
+    """
+    occ = as_numpy(occ, name)
+    if occ.dtype != np.uint8:
+        raise ValueError(f"{name}: expected dtype uint8, got {occ.dtype}")
+    if occ.ndim != 4 or min(occ.shape) < 1:
+        raise ValueError(f"{name}: expected shape [T, X, Y, Z], got {occ.shape}")
+    if occ.shape[0] < min_frames:
+        raise ValueError(
+            f"{name}: expected at least {min_frames} history frames, got {occ.shape[0]}"
+        )
+    if int(occ.max()) > FREE_ID:
+        raise ValueError(f"{name}: expected class ids in [0, {FREE_ID}], got max {int(occ.max())}")
+    return occ
+
+
+def check_displacements(disp, rows: int, name: str = "ego_displacements") -> np.ndarray:
+    """Validate per-step ego displacements [rows, 2] metres (finite, physically possible).
+
+    Each row's length must be at most :data:`MAX_STEP_DISPLACEMENT_M` (50 m per 0.5 s).
+
+    Returns:
+        The array (numpy view, not copied).
+    """
+    disp = as_numpy(disp, name)
+    if not np.issubdtype(disp.dtype, np.floating):
+        raise ValueError(f"{name}: expected a float dtype, got {disp.dtype}")
+    if disp.shape != (rows, 2):
+        raise ValueError(f"{name}: expected shape [T-1, 2] = [{rows}, 2], got {disp.shape}")
+    if not np.isfinite(disp).all():
+        raise ValueError(f"{name}: expected finite values, got NaN or inf")
+    if rows:
+        step = np.hypot(disp[:, 0].astype(np.float64), disp[:, 1].astype(np.float64))
+        worst = int(step.argmax())
+        if step[worst] > MAX_STEP_DISPLACEMENT_M:
+            raise ValueError(
+                f"{name}: expected steps of at most {MAX_STEP_DISPLACEMENT_M:g} m per "
+                f"{KEYFRAME_DT:g} s ({MAX_STEP_DISPLACEMENT_M / KEYFRAME_DT:g} m/s), got "
+                f"{step[worst]:.6g} m at row {worst}"
+            )
+    return disp
+
+
+def check_command(command) -> str:
+    """Validate a driving command (one of ``COMMANDS``)."""
+    if not isinstance(command, str) or command not in COMMANDS:
+        raise ValueError(f"command: expected one of {COMMANDS}, got {command!r}")
+    return command
+
+
+@dataclass(frozen=True)
+class PlanRequest:
+    """One planning query (validated on construction; see the module docstring for frames).
+
+    Attributes:
+        occupancy: [T, X, Y, Z] uint8 Occ3D ids (<= 17), T >= 5, oldest first.
+        ego_displacements: [T-1, 2] float metres, current ego frame; each step at most
+            :data:`MAX_STEP_DISPLACEMENT_M` = 50 m long (360 km/h over 0.5 s), finite.
+        command: ``"left"``, ``"right"`` or ``"straight"`` (the current command).
+    """
+
+    occupancy: np.ndarray
+    ego_displacements: np.ndarray
+    command: str
+
+    def __post_init__(self) -> None:
+        occ = check_occupancy(self.occupancy)
+        check_displacements(self.ego_displacements, occ.shape[0] - 1)
+        check_command(self.command)
+
+
+@dataclass(frozen=True)
+class PlanResult:
+    """Planner output.
+
+    Attributes:
+        trajectory: [S, 2] float32 metres, positions at +0.5 ... +S/2 s in the current ego frame.
+        occupancy_forecast: [S, X, Y, Z] uint8, frame t+k+1 in its own (predicted) ego frame;
+            None for a trajectory-only plan (``forecast=False``).
+        timings: milliseconds: ``encode``, ``world_model``, ``decode``, ``total`` (for a
+            batch: the whole batch's times) and ``batch_size``.
+    """
+
+    trajectory: np.ndarray
+    occupancy_forecast: np.ndarray | None
+    timings: dict = field(default_factory=dict)

@@ -1,0 +1,133 @@
+"""Streaming planning: a session keeps the encoded history, so a new frame costs one encode.
+
+In a car's loop the planner sees one new occupancy frame per keyframe (0.5 s). Re-planning
+from a :class:`PlanRequest` would encode all five history frames again; a session encodes
+each frame once, keeps the last ``history_frames`` frames' tokens, and rolls out from them::
+
+    session = PlannerSession(planner)
+    for occ_t, disp_t, cmd_t in stream:            # occ_t [X, Y, Z] uint8, own ego frame
+        session.push(occ_t)                         # one encode
+        if session.ready:
+            result = session.plan(disp_t, cmd_t)    # disp_t [>= 4, 2], current ego frame
+
+The tokens of a frame do not depend on the other frames (the tokenizer encodes each frame by
+itself), so :meth:`PlannerSession.plan` equals :meth:`Planner.plan` on the same last five
+frames. The displacements are passed with every plan because they are expressed in the
+**current** ego frame, which changes with every frame (only the occupancy is reusable).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+import torch
+
+from renderworld.planning.api import Planner
+from renderworld.planning.request import (
+    PlanResult,
+    as_numpy,
+    check_command,
+    check_displacements,
+    check_occupancy,
+)
+
+__all__ = ["PlannerSession"]
+
+
+class PlannerSession:
+    """Encoded history of one vehicle's stream of occupancy frames.
+
+    Args:
+        planner: the :class:`Planner` that encodes and plans.
+    """
+
+    def __init__(self, planner: Planner):
+        if not isinstance(planner, Planner):
+            raise TypeError(f"planner: expected Planner, got {type(planner).__name__}")
+        self.planner = planner
+        self.history_frames = planner.config.history_frames
+        self._tokens: deque[torch.Tensor] = deque(maxlen=self.history_frames)
+        self._grid: tuple[int, ...] | None = None
+        self._last_encode_ms = 0.0
+        self.frames_seen = 0
+
+    @property
+    def ready(self) -> bool:
+        """Whether ``history_frames`` frames have been pushed (a plan is possible)."""
+        return len(self._tokens) == self.history_frames
+
+    def reset(self) -> None:
+        """Forget the history (e.g. after a gap in the stream)."""
+        self._tokens.clear()
+        self._grid = None
+        self.frames_seen = 0
+
+    def push(self, occupancy) -> float:
+        """Encode the newest frame and append it to the history (the oldest one drops out).
+
+        Args:
+            occupancy: [X, Y, Z] uint8 Occ3D ids of the new current frame, in its own ego
+                frame, on the tokenizer's grid (the same grid as earlier frames).
+
+        Returns:
+            The encode time in milliseconds.
+        """
+        occ = check_occupancy(as_numpy(occupancy, "occupancy")[None], "occupancy", 1)[0]
+        if occ.ndim != 3:  # pragma: no cover - check_occupancy saw 4 dims
+            raise ValueError(f"occupancy: expected shape [X, Y, Z], got {occ.shape}")
+        if self._grid is not None and occ.shape != self._grid:
+            raise ValueError(
+                f"occupancy: expected grid {self._grid} like the earlier frames, got {occ.shape}"
+            )
+        p = self.planner
+        with torch.inference_mode():
+            t0 = p._sync()
+            frame = torch.from_numpy(np.array(occ, copy=True)).to(p.device)[None]
+            tokens = p.encode(frame)
+            self._last_encode_ms = 1e3 * (p._sync() - t0)
+        self._tokens.append(tokens.indices[0])
+        self._grid = tuple(occ.shape)
+        self.frames_seen += 1
+        return self._last_encode_ms
+
+    def plan(self, ego_displacements, command: str, forecast: bool = True) -> PlanResult:
+        """Plan from the last ``history_frames`` pushed frames.
+
+        Args:
+            ego_displacements: [T-1, 2] float metres, T-1 >= ``history_frames - 1`` (the last
+                rows are used): ``d[i]`` between consecutive history frames, in the **current**
+                ego frame; each step at most 50 m (see :class:`PlanRequest`).
+            command: ``"left"``, ``"right"`` or ``"straight"``.
+            forecast: also decode the occupancy forecast (False: trajectory only).
+
+        Returns:
+            :class:`PlanResult`; ``timings["encode"]`` is the encode time of the pushes since
+            the previous plan (0 when none).
+
+        Raises:
+            ValueError: fewer than ``history_frames`` frames pushed, or a bad argument.
+        """
+        h = self.history_frames
+        if not self.ready:
+            raise ValueError(
+                f"session: expected {h} pushed frames before planning, got {len(self._tokens)}"
+            )
+        disp = as_numpy(ego_displacements, "ego_displacements")
+        rows = disp.shape[0] if disp.ndim == 2 and disp.shape[0] >= h - 1 else h - 1
+        disp = check_displacements(disp, rows)[-(h - 1) :]
+        check_command(command)
+        if not isinstance(forecast, bool):
+            raise TypeError(f"forecast: expected a bool, got {forecast!r}")
+        history = torch.stack(list(self._tokens))[None]  # [1, H, G, h, w]
+        encode_ms, self._last_encode_ms = self._last_encode_ms, 0.0
+        return self.planner._plan_tokens(
+            history, disp.astype(np.float32)[None], [command], forecast, encode_ms
+        )[0]
+
+    def step(self, occupancy, ego_displacements, command: str, forecast: bool = True):
+        """:meth:`push` the new frame, then :meth:`plan` if the history is full (else None)."""
+        self.push(occupancy)
+        if not self.ready:
+            return None
+        return self.plan(ego_displacements, command, forecast)

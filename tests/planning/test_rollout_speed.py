@@ -1,0 +1,55 @@
+"""The rollout's shortcuts give the reference's results: last-position logits, buffered KV cache."""
+
+import pytest
+import torch
+
+from renderworld.world import WorldModel, WorldModelCache, WorldModelConfig
+
+
+def model_and_inputs(t=5, seed=0):
+    torch.manual_seed(seed)
+    cfg = WorldModelConfig(
+        codebook_sizes=(8, 6), token_grid=(6, 5), embed_dim=16, num_heads=2, num_scales=3,
+        layers_per_scale=(1, 1, 1),
+    )  # fmt: skip
+    model = WorldModel(cfg).eval()
+    torch.nn.init.normal_(model.ego_head.weight, std=0.3)
+    tokens = torch.stack([torch.randint(0, k, (2, t, 6, 5)) for k in (8, 6)], 2)
+    disp = torch.randn(2, t - 1, 2) * 3
+    return model, tokens, disp, torch.tensor([0, 2])
+
+
+def test_last_only_equals_the_full_call_at_the_last_position():
+    model, tokens, disp, cmd = model_and_inputs()
+    with torch.no_grad():
+        full = model(tokens, disp, cmd)
+        last = model(tokens, disp, cmd, last_only=True)
+    for lf, ll in zip(full.logits, last.logits):
+        assert ll.shape[1] == 1
+        torch.testing.assert_close(ll[:, 0], lf[:, -1], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(last.displacement, full.displacement)
+
+
+@pytest.mark.parametrize("chunks", [(5, 1, 1, 1), (3, 2, 1, 2), (1, 1, 1, 1, 1, 1, 1, 1)])
+def test_cached_pieces_with_last_only_equal_the_whole_window(chunks):
+    model, tokens, disp, cmd = model_and_inputs(t=sum(chunks), seed=1)
+    cache, done = WorldModelCache(), 0
+    with torch.no_grad():
+        full = model(tokens, disp, cmd)
+        for n in chunks:  # the KV cache grows past its first capacity here
+            done += n
+            out = model(tokens[:, :done], disp[:, : done - 1], cmd, cache=cache, last_only=True)
+            for lf, ll in zip(full.logits, out.logits):
+                torch.testing.assert_close(ll[:, 0], lf[:, done - 1], rtol=1e-4, atol=1e-5)
+            torch.testing.assert_close(
+                out.displacement, full.displacement[:, done - n : done], rtol=1e-4, atol=1e-5
+            )
+    assert cache.frames == done
+
+
+def test_rollout_equals_the_recomputing_reference():
+    model, tokens, disp, cmd = model_and_inputs(seed=2)
+    fast = model.rollout(tokens, disp, cmd, steps=6)
+    ref = model.rollout(tokens, disp, cmd, steps=6, use_cache=False)
+    torch.testing.assert_close(fast.tokens, ref.tokens, rtol=0, atol=0)
+    torch.testing.assert_close(fast.trajectory, ref.trajectory, rtol=1e-4, atol=1e-4)
