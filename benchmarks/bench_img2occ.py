@@ -28,14 +28,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
-import statistics
 import subprocess
 import sys
-import time
 
 import numpy as np
 import torch
+from steptime import time_steps
 
 from renderworld.constants import CAMERA_NAMES, NUM_SEMANTIC_CLASSES, get_grid
 from renderworld.geometry import pose_matrix
@@ -117,27 +115,16 @@ def run_one(args) -> dict:
     if backend == "auto":
         names = available_backends(device)
         backend = next(n for n in ("gsplat", "cpp", "torch") if n in names)
-    base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    if device.type == "cuda":
-        torch.cuda.reset_peak_memory_stats()
-    logs = step()  # warm-up (also builds the C++ kernel once)
-    times = []
-    for _ in range(args.repeats):
-        t0 = time.perf_counter()
-        step()
-        times.append(time.perf_counter() - t0)
-    if device.type == "cuda":
-        peak_mb = torch.cuda.max_memory_allocated() / 2**20
-    else:
-        peak_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base_rss) / 1024
+    timing = time_steps(lambda _i: step(), args.repeats, device)  # warm-up builds the C++ kernel
+    logs = timing.warmup
     return {
         "grid": args.grid,
         "anchors": grid.num_voxels,
         "prune": prune,
         "rendered": float(logs["gaussians_rendered"]),
         "backend": backend,
-        "step_s": statistics.median(times),
-        "peak_mb": peak_mb,
+        "step_s": timing.step_s,
+        "peak_mb": timing.peak_mb,
     }
 
 

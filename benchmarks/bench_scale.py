@@ -21,12 +21,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
-import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -78,6 +75,7 @@ def _tokenizer_checkpoint(args, run_dir: Path) -> Path:
 def run_one(args) -> dict:
     """One stage's steps, in this (fresh) process."""
     import torch
+    from steptime import time_steps
     from torch.utils.data import DataLoader
 
     from renderworld.training.registry import get_stage
@@ -111,30 +109,16 @@ def run_one(args) -> dict:
         if device.type == "cuda":
             torch.cuda.synchronize()
 
-    base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    if device.type == "cuda":
-        torch.cuda.reset_peak_memory_stats()
-    t0 = time.perf_counter()
-    step(batches[0])  # warm-up: kernels, allocator, the world model's code cache
-    first = time.perf_counter() - t0
-    times = []
-    for i in range(args.repeats):
-        t0 = time.perf_counter()
-        step(batches[i % len(batches)])
-        times.append(time.perf_counter() - t0)
-    if device.type == "cuda":
-        peak_mb = torch.cuda.max_memory_allocated() / 2**20
-    else:
-        peak_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base_rss) / 1024
+    timing = time_steps(lambda i: step(batches[i % len(batches)]), args.repeats, device)
     return {
         "stage": args.stage,
         "experiment": f"paper_{args.stage}",
         "grid": list(cfg.grid.shape),
         "batch_size": bs,
         "params": sum(p.numel() for p in model.parameters()),
-        "first_step_s": first,
-        "step_s": statistics.median(times),
-        "peak_mb": peak_mb,
+        "first_step_s": timing.first_s,
+        "step_s": timing.step_s,
+        "peak_mb": timing.peak_mb,
         "device": args.device,
         "precision": args.precision,
         "threads": args.threads,

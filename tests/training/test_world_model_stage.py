@@ -465,7 +465,7 @@ def test_readme_planner_example_runs(trained, tokenizer_ckpt, tmp_path):
     export = blocks["bash"].replace("\\\n", " ").strip()
     assert export.startswith("python -c ")
     for demo, real in (
-        ("outputs/demo/world_model/checkpoints/best.pt", run / "checkpoints" / "last.pt"),
+        ("outputs/wm_tokens/checkpoints/best.pt", run / "checkpoints" / "last.pt"),
         ("outputs/demo/tokenizer/checkpoints/best.pt", tokenizer_ckpt),
     ):
         assert demo in export
