@@ -85,9 +85,25 @@ def load_viewer_models(
     path = _given(world_model_ckpt, "world_model_ckpt", "forecast", why)
     if path is not None and models["tokenizer"] is None:
         why["forecast"] = why.get("tokenizer", "world_model_ckpt needs its tokenizer_ckpt")
+    elif path is not None and _forecaster(path) != "tokens":
+        why["forecast"] = (
+            f"world_model_ckpt {str(path)!r} is a stage.forecaster={_forecaster(path)!r} model; "
+            "the forecast layer draws the planner's token world models (stage.forecaster=tokens)"
+        )
     elif path is not None:
         models["planner"] = _planner(path, models["tokenizer"], Path(tokenizer_ckpt), device)
     return models
+
+
+def _forecaster(world_model_ckpt: Path) -> str:
+    """``stage.forecaster`` of a world-model checkpoint (``"tokens"`` or ``"pose_warp"``)."""
+    from omegaconf import OmegaConf
+
+    from renderworld.training.checkpoint import load_checkpoint
+    from renderworld.training.stages.world_model_settings import forecaster_of
+
+    ckpt = load_checkpoint(world_model_ckpt, expected_stage="world_model")
+    return forecaster_of(OmegaConf.create(ckpt["config"]))
 
 
 def _planner(world_model_ckpt: Path, tokenizer, tokenizer_ckpt: Path, device: str):

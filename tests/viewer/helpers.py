@@ -24,14 +24,16 @@ def tokenizer_checkpoint(tok, path):
     return save_checkpoint(state, path)
 
 
-def world_model_checkpoint(wm, tokenizer_ckpt, path):
-    """A ``world_model`` checkpoint of ``wm`` trained (as its config says) on ``tokenizer_ckpt``."""
+def world_model_checkpoint(wm, tokenizer_ckpt, path, forecaster="tokens"):
+    """A ``world_model`` checkpoint of ``wm`` trained (as its config says) on ``tokenizer_ckpt``
+    (``forecaster``: the ``stage.forecaster`` its config records)."""
     c = wm.config
     model = {"embed_dim": c.embed_dim, "num_heads": c.num_heads, "num_scales": c.num_scales,
              "layers_per_scale": list(c.layers_per_scale)}  # fmt: skip
     config = {
         "stage": {"name": "world_model", "history": c.history_frames, "future": c.future_frames,
-                  "lambda_l2": 1.0, "tokenizer_ckpt": str(tokenizer_ckpt), "model": model},
+                  "lambda_l2": 1.0, "tokenizer_ckpt": str(tokenizer_ckpt), "model": model,
+                  "forecaster": forecaster},
     }  # fmt: skip
     state = {"schema_version": 1, "stage": "world_model", "step": 0,
              "config": yaml.safe_dump(config), "model": wm.state_dict()}  # fmt: skip

@@ -54,6 +54,17 @@ def test_a_world_model_checkpoint_plans_like_the_model_it_holds(tiny_models, tmp
         load_viewer_models(tokenizer_ckpt=other, world_model_ckpt=wm_path)
 
 
+def test_a_pose_warp_world_model_is_skipped_with_its_reason(tiny_models, tmp_path):
+    # The main job's pose-aware forecaster is no planner: the forecast layer says so and the
+    # recording goes on without it (make demo's viewer step must not fail on it).
+    _, tok, planner = tiny_models
+    tok_path = tokenizer_checkpoint(tok, tmp_path / "tok.pt")
+    wm = world_model_checkpoint(planner.world_model, tok_path, tmp_path / "wm.pt", "pose_warp")
+    models = load_viewer_models(tokenizer_ckpt=tok_path, world_model_ckpt=wm)
+    assert models["planner"] is None and models["tokenizer"] is not None
+    assert "stage.forecaster='pose_warp'" in models.reasons["forecast"]
+
+
 def test_an_img2occ_checkpoint_keeps_weights_and_readout_threshold(tiny_models, tmp_path):
     img2occ = tiny_models[0]
     path = img2occ_checkpoint(img2occ, tmp_path / "i2o.pt")
