@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from data_converters import ConvertOptions, create_data
+from tests.training.conftest import _single_thread  # noqa: F401 (one torch thread per test)
 
 
 @pytest.fixture(scope="session")
@@ -45,11 +46,3 @@ def tiny_models():
                          embed_dim=16, num_heads=2, num_scales=1, layers_per_scale=(1,))
     )  # fmt: skip
     return img2occ, tok, Planner(tok, wm)
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
