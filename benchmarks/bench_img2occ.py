@@ -27,13 +27,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 
 import numpy as np
 import torch
-from steptime import time_steps
+from steptime import run_point, time_steps
 
 from renderworld.constants import CAMERA_NAMES, NUM_SEMANTIC_CLASSES, get_grid
 from renderworld.geometry import pose_matrix
@@ -160,20 +158,9 @@ def main() -> None:
             cmd += ["--input", *map(str, args.input), "--render", *map(str, args.render)]
             cmd += ["--occupied-layers", str(layers), "--device", args.device]
             cmd += ["--depth-bins", str(args.depth_bins)]
-            env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
-            try:
-                res = subprocess.run(
-                    cmd, capture_output=True, text=True, timeout=args.timeout, env=env
-                )
-            except subprocess.TimeoutExpired:
-                print(f"{grid} prune={prune}: timed out after {args.timeout} s", flush=True)
-                continue
-            if res.returncode != 0:
-                print(f"{grid} prune={prune}: failed ({res.returncode})\n{res.stderr[-2000:]}")
-                continue
-            row = json.loads(res.stdout.strip().splitlines()[-1])
-            rows.append(row)
-            print(json.dumps(row), flush=True)
+            row = run_point(cmd, f"{grid} prune={prune}", args.timeout)
+            if row is not None:
+                rows.append(row)
     print(
         f"\nImg2Occ training step (forward + loss + backward), 6 cameras at "
         f"{args.input[0]}x{args.input[1]}, {args.views} rendered at "

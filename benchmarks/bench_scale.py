@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -142,6 +140,8 @@ def main() -> None:
     if args.stage:
         print(json.dumps(run_one(args)))
         return
+    from steptime import run_point
+
     rows = []
     for stage in args.stages.split(","):
         if stage not in STAGES:
@@ -153,18 +153,9 @@ def main() -> None:
         cmd += [f"--override={o}" for o in args.override]
         if args.infos_dir:
             cmd += ["--infos-dir", args.infos_dir]
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), *sys.path])}
-        try:
-            res = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, env=env)
-        except subprocess.TimeoutExpired:
-            print(f"{stage}: timed out after {args.timeout} s", flush=True)
-            continue
-        if res.returncode != 0:
-            print(f"{stage}: failed ({res.returncode})\n{res.stderr[-3000:]}", flush=True)
-            continue
-        row = json.loads(res.stdout.strip().splitlines()[-1])
-        rows.append(row)
-        print(json.dumps(row), flush=True)
+        row = run_point(cmd, stage, args.timeout, (str(REPO),))
+        if row is not None:
+            rows.append(row)
     print(
         f"\nPaper-scale training steps (experiment=paper_<stage>), data {args.data_root}, "
         f"device {args.device}, precision {args.precision}, {args.threads} threads"
