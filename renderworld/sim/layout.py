@@ -17,7 +17,15 @@ from renderworld.sim.objects import SimObject, make_object
 from renderworld.sim.roads import ROAD, TERRAIN, GroundRaster, Junction, Road, RoadNetwork
 from renderworld.sim.scene import SceneSpec
 
-__all__ = ["World", "EgoPlan", "build_roads", "plan_ego", "place_static", "EGO_CENTRE_OFFSET"]
+__all__ = [
+    "World",
+    "EgoPlan",
+    "build_roads",
+    "plan_ego",
+    "place_static",
+    "ego_trajectory",
+    "EGO_CENTRE_OFFSET",
+]
 
 #: The ego box centre lies this far ahead of the rear axle (ego origin), metres.
 EGO_CENTRE_OFFSET = 1.1
@@ -35,6 +43,7 @@ class EgoPlan:
     v_turn: float = 0.0
     stop_s: float | None = None  # arc length where a stop-and-go ego stands
     stop_window: tuple[float, float] | None = None  # seconds
+    scripted: list = field(default_factory=list)  # agents of an interaction scenario
 
 
 @dataclass
@@ -91,7 +100,9 @@ def plan_ego(spec: SceneSpec, duration: float, rng: np.random.Generator) -> EgoP
     v = float(spec.speed)
     road = Road(np.zeros((2, 2)), lanes=spec.lanes)
     hw = road.half_width
-    lanes = {"turn_left": 0, "turn_right": spec.lanes - 1, "lane_change_left": 0}
+    left = spec.behaviour in ("turn_left", "turn_oncoming")
+    lanes = {"turn_left": 0, "turn_oncoming": 0, "turn_right": spec.lanes - 1,
+             "lane_change_left": 0, "overtake_parked": spec.lanes - 1}  # fmt: skip
     lane = lanes.get(spec.behaviour, 1 if spec.behaviour == "lane_change_right" else None)
     if lane is None:
         lane = int(rng.integers(spec.lanes))
@@ -99,13 +110,13 @@ def plan_ego(spec: SceneSpec, duration: float, rng: np.random.Generator) -> EgoP
     o = -road.lane_offset(lane)  # metres right of the centreline
     approach = v * duration * rng.uniform(0.25, 0.4)
     tail = v * (duration + 4.0) + 60.0
-    r_turn = hw + o if spec.behaviour == "turn_left" else 9.0
-    junction_x = approach + (hw if spec.behaviour == "turn_left" else o + r_turn)
+    r_turn = hw + o if left else 9.0
+    junction_x = approach + (hw if left else o + r_turn)
     if spec.kind == "curve":
         junction_x = approach
     turn_window = None
-    if spec.behaviour in ("turn_left", "turn_right"):
-        sign = 1.0 if spec.behaviour == "turn_left" else -1.0
+    if left or spec.behaviour == "turn_right":
+        sign = 1.0 if left else -1.0
         pieces = [("line", approach, 0), ("arc", r_turn, sign * np.pi / 2), ("line", tail, 0)]
         path = Path(arc_path((0.0, -o), 0.0, pieces))
         turn_window = (approach - 15.0, approach + r_turn * np.pi / 2 + 10.0)
@@ -149,14 +160,21 @@ def time_ego(plan: EgoPlan, spec: SceneSpec, times: np.ndarray, rng) -> None:
         sp = float(np.clip(target, sp - 2.5 * dt, sp + 1.5 * dt))
         s[i] = s[i - 1] + sp * dt
     s[:i0] = v * times[:i0] if stop is None else 0.0
-    (p0,), (h0,) = plan.path.at(np.zeros(1))
-    back = p0 - 20.0 * np.array([np.cos(h0), np.sin(h0)])
-    # `ext` starts 20 m behind the path start, so that poses before t = 0 exist.
-    ext = Path(np.concatenate([back[None], plan.path.xy]))
-    plan.trajectory = Trajectory.along(ext, s + 20.0, times)
+    plan.trajectory = ego_trajectory(plan.path, s, times)
     if stop is not None:
         plan.stop_s = float(s[np.searchsorted(times, stop[1])])
         plan.stop_window = (float(stop[1]), float(stop[2]))
+
+
+def ego_trajectory(path: Path, s: np.ndarray, times: np.ndarray) -> Trajectory:
+    """Rear-axle trajectory along ``path`` at arc lengths ``s`` [T] (metres; < 0 before its start).
+
+    The path is extended 20 m straight backwards so that poses before t = 0 exist.
+    """
+    (p0,), (h0,) = path.at(np.zeros(1))
+    back = p0 - 20.0 * np.array([np.cos(h0), np.sin(h0)])
+    ext = Path(np.concatenate([back[None], path.xy]))
+    return Trajectory.along(ext, np.asarray(s) + 20.0, times)
 
 
 def _free(world: World, key, centre, yaw, half, margin=0.3) -> bool:

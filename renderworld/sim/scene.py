@@ -10,7 +10,9 @@ near the origin heading +x.
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
+from fnmatch import fnmatchcase as fnmatch
 from typing import Any
 
 from renderworld.constants import LIDARSEG_CLASSES, MINI_TRAIN_SCENES, MINI_VAL_SCENES
@@ -18,6 +20,8 @@ from renderworld.constants import LIDARSEG_CLASSES, MINI_TRAIN_SCENES, MINI_VAL_
 __all__ = [
     "ROAD_KINDS",
     "BEHAVIOURS",
+    "INTERACTIONS",
+    "MIN_INTERACTION_KEYFRAMES",
     "WEATHERS",
     "OBJECT_CATEGORIES",
     "EffectsSpec",
@@ -36,7 +40,22 @@ BEHAVIOURS: tuple[str, ...] = (
     "lane_change_left",
     "lane_change_right",
     "parked",
+    "lead_brake",
+    "cut_in",
+    "ped_crossing",
+    "turn_oncoming",
+    "overtake_parked",
 )
+#: Interaction behaviours (a scripted agent the ego reacts to) and the road kinds each runs on.
+INTERACTIONS: dict[str, tuple[str, ...]] = {
+    "lead_brake": ("straight", "intersection"),
+    "cut_in": ("straight",),
+    "ped_crossing": ("straight", "intersection"),
+    "turn_oncoming": ("intersection",),
+    "overtake_parked": ("straight",),
+}
+#: Interactions need room for 5 history + 6 future keyframes around the reaction.
+MIN_INTERACTION_KEYFRAMES = 16
 WEATHERS: tuple[str, ...] = ("clear", "rain", "fog")
 
 #: lidarseg categories the simulator can build, with a default annotation size
@@ -178,6 +197,8 @@ class SceneSpec:
             "t_junction",
         ):
             raise _err(f"{where}.behaviour", "a turn only on intersection/t_junction", self.kind)
+        if self.behaviour in INTERACTIONS:
+            self._validate_interaction(where)
         if self.kind == "t_junction" and self.behaviour not in ("turn_left", "turn_right"):
             raise _err(
                 f"{where}.behaviour", "turn_left or turn_right at a t_junction", self.behaviour
@@ -198,6 +219,22 @@ class SceneSpec:
         if self.route is not None:
             if len(self.route) < 2 or any(len(p) != 2 for p in self.route):
                 raise _err(f"{where}.route", "at least 2 waypoints [x, y]", self.route)
+
+    def _validate_interaction(self, where: str) -> None:
+        kinds = INTERACTIONS[self.behaviour]
+        if self.kind not in kinds:
+            raise _err(f"{where}.kind", f"one of {kinds} for {self.behaviour}", self.kind)
+        if self.behaviour in ("cut_in", "turn_oncoming") and self.lanes != 2:
+            raise _err(f"{where}.lanes", f"2 for {self.behaviour}", self.lanes)
+        if not (5.0 <= float(self.speed) <= 15.0):
+            raise _err(f"{where}.speed", f"a speed in [5, 15] m/s for {self.behaviour}", self.speed)
+        if self.route is not None:
+            raise _err(f"{where}.route", f"no explicit route for {self.behaviour}", self.route)
+        if not (self.effects.ego_motion and self.effects.agent_motion):
+            raise _err(
+                f"{where}.effects", f"ego_motion and agent_motion on for {self.behaviour}",
+                {"ego_motion": self.effects.ego_motion, "agent_motion": self.effects.agent_motion},
+            )  # fmt: skip
 
 
 @dataclass
@@ -252,6 +289,9 @@ class SimConfig:
         scenes: scene descriptions; scene i gets ``scene_names[i]``.
         scene_names: names, default the official mini split (8 train + 2 val).
         sensors: sensor settings.
+        splits: ``{split: [scene-name patterns]}`` (``fnmatch``, e.g. ``["scene-5*"]``) written
+            as ``<version>/splits.json`` for the infos builder; every scene must match exactly
+            one split. ``None`` writes none (the official mini split then applies).
     """
 
     seed: int = 0
@@ -262,6 +302,7 @@ class SimConfig:
         default_factory=lambda: list(MINI_TRAIN_SCENES) + list(MINI_VAL_SCENES)
     )
     sensors: SensorSpec = field(default_factory=SensorSpec)
+    splits: dict[str, list[str]] | None = None
 
     def validate(self) -> None:
         """Validate every field; raises ValueError naming the offending one."""
@@ -279,6 +320,40 @@ class SimConfig:
         self.sensors.validate()
         for i, s in enumerate(self.scenes):
             s.validate(f"scenes[{i}]")
+            if s.behaviour in INTERACTIONS and self.keyframes < MIN_INTERACTION_KEYFRAMES:
+                raise _err(
+                    "keyframes", f">= {MIN_INTERACTION_KEYFRAMES} for scenes[{i}].behaviour "
+                    f"{s.behaviour!r}", self.keyframes,
+                )  # fmt: skip
+        if self.splits is not None:
+            self.split_lists()
+
+    def split_lists(self) -> dict[str, list[str]] | None:
+        """``{split: [scene names]}`` from :attr:`splits` (``None`` when unset).
+
+        Raises:
+            ValueError: naming ``splits`` when it is malformed or a scene matches no split or
+                several.
+        """
+        if self.splits is None:
+            return None
+        ok = isinstance(self.splits, dict) and all(
+            isinstance(k, str) and isinstance(v, list) and all(isinstance(p, str) for p in v)
+            for k, v in self.splits.items()
+        )
+        if not ok or not self.splits:
+            raise _err("splits", "{split: [scene-name patterns]}", self.splits)
+        out: dict[str, list[str]] = {k: [] for k in self.splits}
+        for name, _ in self.named_scenes:
+            hit = [k for k, pats in self.splits.items() if any(fnmatch(name, p) for p in pats)]
+            if len(hit) != 1:
+                raise _err("splits", f"exactly one split matching scene {name!r}", hit)
+            out[hit[0]].append(name)
+        return out
+
+    def splits_json(self) -> bytes:
+        """``splits.json`` bytes (sorted-key JSON) of :meth:`split_lists`."""
+        return json.dumps(self.split_lists(), indent=1, sort_keys=True).encode()
 
     @property
     def named_scenes(self) -> list[tuple[str, SceneSpec]]:

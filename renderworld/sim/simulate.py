@@ -106,6 +106,8 @@ def simulate(config: SimConfig, out, overwrite: bool = False, progress: bool = T
             bar.close()
         with report.stage("write_tables"):
             writer.finish()
+            if config.splits is not None:  # the split the infos builder assigns per scene
+                writer._write(f"{config.version}/splits.json", config.splits_json())
         result = {
             "dataroot": str(out),
             "version": config.version,

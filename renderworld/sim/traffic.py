@@ -23,7 +23,8 @@ from renderworld.sim.layout import (
 )
 from renderworld.sim.objects import make_object
 from renderworld.sim.roads import ROAD, GroundRaster
-from renderworld.sim.scene import OBJECT_CATEGORIES, SceneSpec
+from renderworld.sim.scenarios import INTERACTIONS, plan_interaction
+from renderworld.sim.scene import MIN_INTERACTION_KEYFRAMES, OBJECT_CATEGORIES, SceneSpec
 
 __all__ = ["build_world", "ego_route"]
 
@@ -53,6 +54,7 @@ def build_world(name: str, spec: SceneSpec, keyframes: int, seed: int, index: in
     world = World(name=name, spec=spec, network=network, raster=raster, ego=plan, duration=duration)
     _check_route(world)
     _add_explicit(world, rng)
+    _add_scripted(world)
     place_static(world, rng)
     if spec.num_moving:
         _add_vehicles(world, rng, times)
@@ -95,7 +97,15 @@ def ego_route(spec: SceneSpec, keyframes: int, seed: int, index: int):
         plan.path = Path(full.xy[full.s >= s0[0]])
     if spec.route is not None:
         plan.path = Path(np.asarray(spec.route, dtype=np.float64))
-    time_ego(plan, spec, times, rng)
+    if spec.behaviour in INTERACTIONS:
+        if keyframes < MIN_INTERACTION_KEYFRAMES:
+            raise ValueError(
+                f"keyframes: expected >= {MIN_INTERACTION_KEYFRAMES} for behaviour "
+                f"{spec.behaviour!r}, got {keyframes}"
+            )
+        plan_interaction(plan, spec, network.roads[0], times, keyframes, rng)
+    else:
+        time_ego(plan, spec, times, rng)
     return plan, network, rng, times
 
 
@@ -140,6 +150,31 @@ def _add_explicit(world: World, rng) -> None:
         world.objects.append(make_object(f"obj{i}", o.category, o.dims, traj, rng, variant=variant))
 
 
+def _add_scripted(world: World) -> None:
+    """The interaction agent (already clear of the ego route) must miss the explicit objects."""
+    check = np.arange(-0.5, world.duration + 3.5, 0.1)
+    for obj in world.ego.scripted:
+        hit = [o.key for o in world.objects if _overlaps(obj, o, check, 0.0)]
+        if hit:
+            raise ValueError(
+                f"scene.objects: explicit object {hit[0]} overlaps the {world.spec.behaviour} "
+                f"agent {obj.key}; expected explicit objects off the scripted agent's path"
+            )
+        world.objects.append(obj)
+
+
+def _overlaps(obj, other, times_check: np.ndarray, margin: float) -> bool:
+    c, y = obj.trajectory.pose(times_check)
+    half = obj.footprint_half() + margin
+    oc, oy = other.trajectory.pose(times_check)
+    reach = np.hypot(*half) + np.hypot(*other.footprint_half()) + 0.1
+    near = np.hypot(*(oc - c).T) < reach
+    return bool(
+        near.any()
+        and rects_overlap(c[near], y[near], half, oc[near], oy[near], other.footprint_half()).any()
+    )
+
+
 def _accept(world: World, obj, times_check: np.ndarray, margin: float = 0.25) -> bool:
     """Whether a moving candidate never overlaps the ego or any object already in the world."""
     c, y = obj.trajectory.pose(times_check)
@@ -147,18 +182,7 @@ def _accept(world: World, obj, times_check: np.ndarray, margin: float = 0.25) ->
     ec, ey = world.ego_box(times_check)
     if rects_overlap(c, y, half, ec, ey, [EGO_LENGTH / 2 + 0.5, EGO_WIDTH / 2 + 0.3]).any():
         return False
-    for other in world.objects:
-        oc, oy = other.trajectory.pose(times_check)
-        reach = np.hypot(*half) + np.hypot(*other.footprint_half()) + 0.1
-        near = np.hypot(*(oc - c).T) < reach
-        if (
-            near.any()
-            and rects_overlap(
-                c[near], y[near], half, oc[near], oy[near], other.footprint_half()
-            ).any()
-        ):
-            return False
-    return True
+    return not any(_overlaps(obj, other, times_check, margin) for other in world.objects)
 
 
 def _lane_path(road, lane: int, forward: bool) -> Path:
