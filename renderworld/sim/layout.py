@@ -178,8 +178,13 @@ def ego_trajectory(path: Path, s: np.ndarray, times: np.ndarray) -> Trajectory:
 
 
 def _free(world: World, key, centre, yaw, half, margin=0.3) -> bool:
-    """Whether a static footprint misses every static object and the ego route."""
+    """Whether a static footprint misses every object placed so far and the ego route."""
     for obj in world.objects:
+        if obj.moving:  # a scripted agent: its whole path, 0.1 s steps
+            c, y = obj.trajectory.xy[::5], obj.trajectory.yaw[::5]
+            if rects_overlap(c, y, obj.footprint_half() + margin, centre, yaw, half).any():
+                return False
+            continue
         c, y = obj.trajectory.xy[0], obj.trajectory.yaw[0]
         if np.hypot(*(c - centre)) > np.hypot(*half) + np.hypot(*obj.footprint_half()) + margin:
             continue
