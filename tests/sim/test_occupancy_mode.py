@@ -77,6 +77,7 @@ def test_occ3d_labels_are_identical_to_the_full_mode(roots):
             np.testing.assert_array_equal(a[key], b[key], err_msg=f"{rel}:{key}")
         assert (a["semantics"] != FREE_ID).sum() > 1000, rel  # a real, non-empty world
         assert 0 < a["mask_camera"].sum() < a["mask_lidar"].sum(), rel
+        assert (roots["full"] / rel).read_bytes() == (roots["occupancy"] / rel).read_bytes()
 
 
 def test_poses_and_annotations_are_identical(roots):
