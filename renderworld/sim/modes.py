@@ -34,6 +34,8 @@ the six camera exposure times, and all sensor-file encoding and writing.
 
 from __future__ import annotations
 
+from renderworld.sim.scene import SIM_MODES
+
 __all__ = ["OCCUPANCY_ONLY", "mode_report", "scene_description_suffix", "writes_sensor_files"]
 
 #: Marker in the scene description of an occupancy-only dataset.
@@ -42,8 +44,8 @@ OCCUPANCY_ONLY = "occupancy-only (no camera, LiDAR or lidarseg files)"
 
 def writes_sensor_files(mode: str) -> bool:
     """Whether a run in ``mode`` writes camera images, LiDAR point files and lidarseg."""
-    if mode not in ("full", "occupancy"):
-        raise ValueError(f"mode: expected one of ('full', 'occupancy'), got {mode!r}")
+    if mode not in SIM_MODES:
+        raise ValueError(f"mode: expected one of {SIM_MODES}, got {mode!r}")
     return mode == "full"
 
 

@@ -20,7 +20,8 @@ from renderworld.constants import CAMERA_NAMES, FREE_ID, LIDAR_NAME
 from renderworld.data import DatasetError, NuScenesReader, OccSequenceDataset, load_infos
 from renderworld.data.occupancy_only import SIM_REPORT_NAME, is_occupancy_only
 from renderworld.sim import REPORT_NAME, SimConfig, simulate
-from renderworld.sim.modes import OCCUPANCY_ONLY
+from renderworld.sim.modes import OCCUPANCY_ONLY, writes_sensor_files
+from renderworld.sim.writer import DatasetWriter
 from tests.conftest import REPO_ROOT
 from tests.sim.helpers import VERSION, tables
 from tools.make_fixtures import config_from_preset, sim_config
@@ -152,6 +153,12 @@ def test_bad_mode_raises_naming_mode(tmp_path):
     with pytest.raises(ValueError, match=r"^mode: expected one of"):
         simulate(SimConfig(mode="Occupancy"), tmp_path / "out", progress=False)
     assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ValueError, match=r"^mode: expected one of"):
+        writes_sensor_files("lidar")
+    writer = DatasetWriter(tmp_path / "w", VERSION, 0, lidarseg=False)
+    with pytest.raises(ValueError, match=r"^lidarseg: this writer was made with lidarseg=False"):
+        writer.write_lidarseg("t" * 32, np.zeros(3, np.uint8))
+    assert "lidarseg" not in writer.tables
 
 
 DEVKIT_SNIPPET = """
