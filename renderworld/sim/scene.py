@@ -19,6 +19,7 @@ __all__ = [
     "ROAD_KINDS",
     "BEHAVIOURS",
     "WEATHERS",
+    "SIM_MODES",
     "OBJECT_CATEGORIES",
     "EffectsSpec",
     "ObjectSpec",
@@ -38,6 +39,7 @@ BEHAVIOURS: tuple[str, ...] = (
     "parked",
 )
 WEATHERS: tuple[str, ...] = ("clear", "rain", "fog")
+SIM_MODES: tuple[str, ...] = ("full", "occupancy")  # what a run writes (SimConfig.mode)
 
 #: lidarseg categories the simulator can build, with a default annotation size
 #: (width, length, height) in metres. Vegetation objects are trees.
@@ -252,6 +254,10 @@ class SimConfig:
         scenes: scene descriptions; scene i gets ``scene_names[i]``.
         scene_names: names, default the official mini split (8 train + 2 val).
         sensors: sensor settings.
+        mode: ``"full"`` writes every sensor file (camera JPEGs, LiDAR ``.pcd.bin``,
+            lidarseg); ``"occupancy"`` writes only what the world model reads (Occ3D labels,
+            tables with ego poses and boxes, maps) and skips camera shading; its Occ3D labels,
+            poses and boxes equal the full mode's (:mod:`renderworld.sim.modes`).
     """
 
     seed: int = 0
@@ -262,10 +268,13 @@ class SimConfig:
         default_factory=lambda: list(MINI_TRAIN_SCENES) + list(MINI_VAL_SCENES)
     )
     sensors: SensorSpec = field(default_factory=SensorSpec)
+    mode: str = "full"
 
     def validate(self) -> None:
         """Validate every field; raises ValueError naming the offending one."""
         _check_int("seed", self.seed, 0)
+        if self.mode not in SIM_MODES:
+            raise _err("mode", f"one of {SIM_MODES}", self.mode)
         _check_int("keyframes", self.keyframes, 1)
         if not self.scenes:
             raise _err("scenes", "at least one scene", self.scenes)
