@@ -38,10 +38,11 @@ from data_converters.sample_infos import (
     scene_frames,
 )
 from data_converters.splits import assign_splits
-from renderworld.constants import COMMANDS
-from renderworld.data import NuScenesReader
+from renderworld.constants import COMMANDS, LIDAR_NAME
+from renderworld.data import DatasetError, NuScenesReader
 from renderworld.data.infos import INFOS_SCHEMA_VERSION, infos_file, load_infos, write_infos
 from renderworld.data.labels2d import read_labels2d_params, save_labels2d
+from renderworld.data.occupancy_only import SIM_REPORT_NAME
 from renderworld.geometry import DEVKIT_MIN_DEPTH
 
 __all__ = ["ConvertOptions", "ConvertSummary", "create_data", "default_out_dir"]
@@ -205,12 +206,19 @@ def create_data(
     Returns:
         :class:`ConvertSummary`.
 
+    An occupancy-only simulated dataset (``mode=occupancy``: no images, LiDAR or lidarseg)
+    converts with ``labels=False``; its infos hold the camera records' paths and sizes, though
+    those files do not exist, and serve the tokenizer and world model.
+
     Raises:
-        DatasetError: naming the file or record when the dataset is malformed.
+        DatasetError: naming the file or record when the dataset is malformed, and with
+            ``options.labels`` on an occupancy-only dataset (before anything is written).
     """
     start = time.perf_counter()
     opts = options or ConvertOptions()
     reader = NuScenesReader(data_root, version)
+    if opts.labels and reader.occupancy_only:
+        _refuse_labels_without_sensor_files(reader)
     out_dir = Path(out) if out is not None else default_out_dir(data_root, version)
     out_dir.mkdir(parents=True, exist_ok=True)
     names = reader.scene_names()
@@ -228,6 +236,19 @@ def create_data(
     summary.commands = {c: commands.get(c, 0) for c in COMMANDS}
     summary.seconds = time.perf_counter() - start
     return summary
+
+
+def _refuse_labels_without_sensor_files(reader: NuScenesReader) -> None:
+    """The 2-D labels project LiDAR points into the camera images: neither exists here."""
+    sd = reader.table("sample_data")
+    lidar = sd["filename"][sd["filename"].str.startswith(f"samples/{LIDAR_NAME}/")]
+    example = f"{reader.path(lidar.iloc[0])} does not exist; " if len(lidar) else ""
+    raise DatasetError(
+        f"labels: {reader.dataroot} is an occupancy-only dataset ({example}"
+        f"{reader.dataroot / SIM_REPORT_NAME} says mode 'occupancy'): it has no camera images, "
+        "LiDAR point files or lidarseg to make 2-D labels from; run with labels=false (infos "
+        "for the tokenizer and world model) or simulate it with mode=full"
+    )
 
 
 def _all_camera_views(tables: TableIndex, scenes: list, opts: ConvertOptions) -> list[list]:

@@ -55,9 +55,14 @@ def image_size(tables: TableIndex, sd_token: str) -> tuple[int, int]:
     """(H, W) of a camera image, checked against its sample_data record.
 
     Reads only the image header. Raises DatasetError naming the file when it is missing, not
-    an image, or its size differs from the record's width/height.
+    an image, or its size differs from the record's width/height. An occupancy-only dataset
+    (:mod:`renderworld.data.occupancy_only`) has no images by design: its records' size is
+    returned.
     """
     path = tables.reader.path(tables.field(sd_token, "filename"))
+    rw, rh = int(tables.field(sd_token, "width")), int(tables.field(sd_token, "height"))
+    if not path.is_file() and tables.reader.occupancy_only and rw > 0 and rh > 0:
+        return rh, rw  # no images by design: the record's size (infos only, no 2-D labels)
     if not path.is_file():
         raise DatasetError(f"{path}: image file is missing")
     try:
@@ -65,7 +70,6 @@ def image_size(tables: TableIndex, sd_token: str) -> tuple[int, int]:
             w, h = im.size
     except (UnidentifiedImageError, OSError) as exc:
         raise DatasetError(f"{path}: not a readable image ({exc})") from exc
-    rw, rh = int(tables.field(sd_token, "width")), int(tables.field(sd_token, "height"))
     if (rw, rh) != (0, 0) and (rw, rh) != (w, h):
         raise DatasetError(f"{path}: image is {w}x{h} but sample_data {sd_token!r} says {rw}x{rh}")
     return h, w

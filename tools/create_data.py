@@ -3,7 +3,9 @@
     python tools/create_data.py data_root=data/nuscenes version=v1.0-mini [out=DIR]
         [label_scale=0.25 | label_size=[225,400]] [sweeps=0] [multiframe=0] [overwrite=true]
 
-Thin Hydra wrapper around :func:`data_converters.create_data` (configs/create_data.yaml).
+Thin Hydra wrapper around :func:`data_converters.create_data` (configs/create_data.yaml). A
+malformed dataset (or ``labels=true`` on an occupancy-only one) exits with status 1 and the
+error naming the file on stderr.
 """
 
 import sys
@@ -15,6 +17,7 @@ import hydra  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from data_converters import ConvertOptions, create_data  # noqa: E402
+from renderworld.data import DatasetError  # noqa: E402
 
 
 @hydra.main(config_path="../configs", config_name="create_data", version_base=None)
@@ -33,7 +36,11 @@ def main(cfg: DictConfig) -> dict:
         workers=int(cfg.workers),
         progress=bool(cfg.progress),
     )
-    summary = create_data(cfg.data_root, cfg.version, cfg.out, options)
+    try:
+        summary = create_data(cfg.data_root, cfg.version, cfg.out, options)
+    except DatasetError as exc:  # a malformed or unsuitable dataset: its message, no traceback
+        print(f"create_data: error: {exc}", file=sys.stderr, flush=True)
+        raise SystemExit(1) from None
     print(summary, flush=True)
     return {
         "out_dir": str(summary.out_dir),

@@ -1,7 +1,7 @@
 """Generate simulated nuScenes-format fixtures (Hydra entry point).
 
     python tools/make_fixtures.py out=DIR preset=tiny|mini [seed=..] [num_scenes=..]
-        [keyframes=..] [image_size=WxH] [overwrite=true]
+        [keyframes=..] [image_size=WxH] [overwrite=true] [mode=full|occupancy]
 
 The config lives in ``configs/sim`` (``config.yaml`` + ``preset/<name>.yaml``); the library
 (:mod:`renderworld.sim`) receives plain dataclasses and never imports Hydra.

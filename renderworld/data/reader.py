@@ -27,6 +27,7 @@ from renderworld.constants import (
 from renderworld.data.boxes import boxes_frame
 from renderworld.data.errors import DatasetError
 from renderworld.data.occ3d import Occ3DLabels, load_occ3d_labels
+from renderworld.data.occupancy_only import is_occupancy_only, missing_sensor_file_hint
 from renderworld.data.table_cache import TableCache
 from renderworld.data.tables import check_chain, check_references, read_table
 from renderworld.geometry.poses import pose_matrix
@@ -112,6 +113,12 @@ class NuScenesReader:
         return f"NuScenesReader({str(self.dataroot)!r}, version={self.version!r})"
 
     # ------------------------------------------------------------------ tables
+    @cached_property
+    def occupancy_only(self) -> bool:
+        """Whether this is a simulated occupancy-only dataset (no sensor files; see
+        :mod:`renderworld.data.occupancy_only`)."""
+        return is_occupancy_only(self.dataroot)
+
     @property
     def has_lidarseg(self) -> bool:
         """Whether ``lidarseg.json`` is present."""
@@ -178,7 +185,8 @@ class NuScenesReader:
     def _existing(self, filename: str, what: str) -> Path:
         p = self.path(filename)
         if not p.is_file():
-            raise DatasetError(f"{p}: {what} file is missing")
+            hint = missing_sensor_file_hint(self.dataroot)
+            raise DatasetError(f"{p}: {what} file is missing{hint}")
         return p
 
     # ------------------------------------------------------------------ scenes and samples

@@ -14,6 +14,8 @@ in the current ego frame, metres. Error at step k = Euclidean distance of waypoi
   (``masked_steps``); steps where the GT trajectory itself collides are excluded from that
   source's rate and counted (``collision_<source>_gt_skipped``); steps whose ego box falls
   outside the raster are excluded and counted (``collision_<source>_outside_grid``).
+* ``collision_<source>_hits_<convention>@Hs`` / ``collision_<source>_evaluated_<convention>@Hs``:
+  the integer counts behind each rate (colliding waypoints / evaluated waypoints).
 * ``avg`` = mean of the horizon values. Rates are fractions (tables print percent).
 """
 
@@ -230,6 +232,13 @@ class PlanningMetric:
                 out[f"{name}_mean_to_horizon@{h:g}s"] = mean[-1]
             out[f"{name}_at_horizon_avg"] = float(np.mean(at))
             out[f"{name}_mean_to_horizon_avg"] = float(np.mean(mean))
+            if name == "l2":
+                continue
+            for h, k in zip(self.horizons_s, self.horizon_steps):  # the rates' counts
+                out[f"{name}_hits_at_horizon@{h:g}s"] = int(num[k - 1])
+                out[f"{name}_evaluated_at_horizon@{h:g}s"] = int(den[k - 1])
+                out[f"{name}_hits_mean_to_horizon@{h:g}s"] = int(num[:k].sum())
+                out[f"{name}_evaluated_mean_to_horizon@{h:g}s"] = int(den[:k].sum())
         for s in self.SOURCES:
             if s in self.sources_seen:
                 out[f"collision_{s}_gt_skipped"] = int(self.coll[s]["gt_skipped"].sum())

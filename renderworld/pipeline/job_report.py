@@ -47,6 +47,7 @@ def main_job_report(cfg: Any, out: Path, results: list, seconds: float) -> Path:
     sections += _tokenizer_section(out)
     sections += _img2occ_section(out)
     sections += _world_model_section(out)
+    sections += _interaction_section(out)
     sections.append(("3-D recording (Rerun)", report_section(out)))
     figures = _pictures(cfg, out)
     if figures:
@@ -67,16 +68,20 @@ def _run_section(out: Path, results: list, seconds: float) -> tuple[str, str]:
 
 def _data_section(cfg: Any) -> list[tuple[str, str]]:
     data = Path(str(cfg.data_root)).resolve()
-    sim = load_json(data / "sim_report.json")
-    if not sim:
-        return []
-    return [
-        (
-            "Data",
-            f"Simulated fixture `{data}`: {sim.get('files', '?')} files, "
-            f"{sim.get('bytes', 0) / 2**20:.0f} MiB, generated in {sim.get('seconds', 0):.0f} s.",
-        )
-    ]
+    lines = []
+    for root, what in (
+        (data, "Simulated fixture"),
+        (data.parent / "sim_scenarios", "Scenario library (world-model training, occupancy only)"),
+        (data.parent / "sim_interactions", "Interaction split (held out, occupancy only)"),
+    ):
+        sim = load_json(root / "sim_report.json")
+        if sim:
+            scenes, mib = len(sim.get("scenes", [])), sim.get("bytes", 0) / 2**20
+            lines.append(
+                f"{what} `{root}`: {scenes} scenes, {sim.get('files', '?')} files, "
+                f"{mib:.0f} MiB, generated in {sim.get('seconds', 0):.0f} s."
+            )
+    return [("Data", "\n\n".join(lines))] if lines else []
 
 
 def _tokenizer_section(out: Path) -> list[tuple[str, str]]:
@@ -121,6 +126,21 @@ def _world_model_section(out: Path) -> list[tuple[str, str]]:
     if not table.is_file():
         return []
     return [("Forecasting and planning (mini_val; 3D-Occ and Camera settings)", table.read_text())]
+
+
+def _interaction_section(out: Path) -> list[tuple[str, str]]:
+    from renderworld.training.stages.world_model_report import REPORT_BASENAME
+
+    table = out / "world_model_interactions" / f"{REPORT_BASENAME}.md"
+    if not table.is_file():
+        return []
+    intro = (
+        "The 3D-Occ world model and the baselines on the held-out interaction split (lead "
+        "vehicle braking, cut-in, pedestrian crossing, oncoming traffic at a turn, overtaking a "
+        "parked car; its own seed; docs/scenarios.md): where the ego brakes or swerves for "
+        "someone, a trajectory that ignores the scene collides.\n\n"
+    )
+    return [("Interactions (held-out split; same checkpoints)", intro + table.read_text())]
 
 
 #: Each training run of the main job and the validation metric its curves show (its monitor).

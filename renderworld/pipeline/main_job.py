@@ -15,6 +15,12 @@ from typing import Any
 from renderworld.constants import SIM_VERSION
 from renderworld.pipeline.job_report import main_job_report
 from renderworld.pipeline.runner import Step, run_steps
+from renderworld.pipeline.scenario_steps import (
+    LIBRARY_INFOS,
+    ScenarioData,
+    interaction_eval_step,
+    scenario_steps,
+)
 
 __all__ = ["EXPERIMENTS", "EXPORT_DEVICE", "main_job_steps", "run_main_job"]
 
@@ -147,8 +153,12 @@ def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
         version=cfg.get("version"),
     )
     steps = _data_steps(cfg, p) + _occupancy_steps(p)
+    scen = None
+    if cfg.get("scenarios") and family == "mini":
+        scen = ScenarioData.beside(p.data, repo)
+        steps += scenario_steps(scen, repo)
     if (repo / "configs" / "stage" / "world_model.yaml").is_file():
-        steps += _world_model_steps(p)
+        steps += _world_model_steps(p, scen)
     steps += _viewer_steps(p, {s.name for s in steps})
     return steps
 
@@ -225,19 +235,23 @@ def _occupancy_steps(p: _Paths) -> list[Step]:
     return steps
 
 
-def _world_model_steps(p: _Paths) -> list[Step]:
-    """World models of both settings and the one evaluation that scores them with baselines."""
+def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step]:
+    """World models of both settings and the one evaluation that scores them with baselines;
+    with scenario data, the 3D-Occ model also trains on the library and is scored on the
+    interaction split."""
     pseudo = p.out / "pseudo_labels"
     tok = (f"stage.tokenizer_ckpt={p.ckpt('tokenizer')}",)
     wm_exp, cam_exp, tok_exp = (
         p.experiment("world_model"), p.experiment("world_model_camera"), p.experiment("tokenizer")
     )  # fmt: skip
     wm_inputs = (*p.code("world"), *p.configs("world_model", wm_exp))
+    library = (f"stage.extra_train_roots=[{scen.library}]",) if scen else ()
     steps = _train_and_eval(
         "world_model",
-        ("train the world model on GT occupancy tokens (3D-Occ setting)", ""),
-        wm_exp, (*p.common, *tok), p.out, ("tokenizer",), wm_inputs, p.extra,
-        evaluate=False,
+        ("train the world model on GT occupancy tokens (3D-Occ setting)"
+         + (" and the scenario library" if scen else ""), ""),
+        wm_exp, (*p.common, *tok), p.out, ("tokenizer", *((LIBRARY_INFOS,) if scen else ())),
+        wm_inputs, (*library, *p.extra), evaluate=False,
     )  # fmt: skip
     # Camera setting (paper): its own tokenizer, trained on the pseudo labels; the
     # world_model_eval step scores it in the Camera rows (camera_tokenizer_ckpt).
@@ -273,6 +287,10 @@ def _world_model_steps(p: _Paths) -> list[Step]:
             depends_on=("world_model", "tokenizer_camera", "world_model_camera", "pseudo_labels"),
         )
     )
+    if scen:
+        steps.append(
+            interaction_eval_step(scen, wm_exp, p.ckpt("tokenizer"), p.ckpt("world_model"), p.out)
+        )
     return steps
 
 

@@ -23,6 +23,7 @@ __all__ = [
     "INTERACTIONS",
     "MIN_INTERACTION_KEYFRAMES",
     "WEATHERS",
+    "SIM_MODES",
     "OBJECT_CATEGORIES",
     "EffectsSpec",
     "ObjectSpec",
@@ -57,6 +58,7 @@ INTERACTIONS: dict[str, tuple[str, ...]] = {
 #: Interactions need room for 5 history + 6 future keyframes around the reaction.
 MIN_INTERACTION_KEYFRAMES = 16
 WEATHERS: tuple[str, ...] = ("clear", "rain", "fog")
+SIM_MODES: tuple[str, ...] = ("full", "occupancy")  # what a run writes (SimConfig.mode)
 
 #: lidarseg categories the simulator can build, with a default annotation size
 #: (width, length, height) in metres. Vegetation objects are trees.
@@ -292,6 +294,10 @@ class SimConfig:
         splits: ``{split: [scene-name patterns]}`` (``fnmatch``, e.g. ``["scene-5*"]``) written
             as ``<version>/splits.json`` for the infos builder; every scene must match exactly
             one split. ``None`` writes none (the official mini split then applies).
+        mode: ``"full"`` writes every sensor file (camera JPEGs, LiDAR ``.pcd.bin``,
+            lidarseg); ``"occupancy"`` writes only what the world model reads (Occ3D labels,
+            tables with ego poses and boxes, maps) and skips camera shading; its Occ3D labels,
+            poses and boxes equal the full mode's (:mod:`renderworld.sim.modes`).
     """
 
     seed: int = 0
@@ -303,10 +309,13 @@ class SimConfig:
     )
     sensors: SensorSpec = field(default_factory=SensorSpec)
     splits: dict[str, list[str]] | None = None
+    mode: str = "full"
 
     def validate(self) -> None:
         """Validate every field; raises ValueError naming the offending one."""
         _check_int("seed", self.seed, 0)
+        if self.mode not in SIM_MODES:
+            raise _err("mode", f"one of {SIM_MODES}", self.mode)
         _check_int("keyframes", self.keyframes, 1)
         if not self.scenes:
             raise _err("scenes", "at least one scene", self.scenes)

@@ -3,6 +3,8 @@
 The dataset is written into a temporary directory beside ``out`` and renamed into place at the
 end, so an interrupted run never leaves a complete-looking dataset; leftovers of killed runs
 are removed by the next run. All scenes are generated and validated before anything is written.
+``config.mode`` picks what is written: everything, or only the Occ3D labels, tables and maps
+(:mod:`renderworld.sim.modes`).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from renderworld.geometry import pose_to_translation_quaternion
 from renderworld.sim.effects import EffectReport
 from renderworld.sim.layout import World
 from renderworld.sim.meshes import Raycaster
+from renderworld.sim.modes import mode_report, scene_description_suffix
 from renderworld.sim.occupancy import Voxeliser
 from renderworld.sim.render import camera_depth, render_camera, scan_lidar
 from renderworld.sim.roads import ROAD
@@ -66,7 +69,9 @@ def simulate(config: SimConfig, out, overwrite: bool = False, progress: bool = T
 
     Returns:
         The run report (also written to ``<out>/sim_report.json``): counts, bytes, seconds,
-        and per effect whether it ran, in which scenes, and the seconds it took.
+        the mode and what it wrote (:func:`renderworld.sim.modes.mode_report`), seconds per
+        stage (lidar, camera, semantics, mask_lidar, camera_depth, mask_camera, write_files,
+        ...), and per effect whether it ran, in which scenes, and the seconds it took.
 
     Raises:
         ValueError: on an invalid description (before anything is written).
@@ -87,7 +92,8 @@ def simulate(config: SimConfig, out, overwrite: bool = False, progress: bool = T
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     tmp.mkdir()
     try:
-        writer = DatasetWriter(tmp, config.version, config.seed, config.sensors.jpeg_quality)
+        writer = DatasetWriter(tmp, config.version, config.seed, config.sensors.jpeg_quality,
+                               lidarseg=config.mode == "full")  # fmt: skip
         s = config.sensors
         rig = SensorRig.build(s.image_width, s.image_height)
         mask_size = (max(int(s.image_width * s.mask_camera_scale), 8),
@@ -116,6 +122,7 @@ def simulate(config: SimConfig, out, overwrite: bool = False, progress: bool = T
             "files": writer.files,
             "bytes": writer.bytes,
             "seconds": round(time.perf_counter() - t_start, 3),
+            **mode_report(config.mode),
             **report.to_dict(),
             "config": config.to_dict(),
         }
@@ -239,9 +246,10 @@ def _simulate_keyframe(sc: _SceneState, k: int) -> None:
     else:
         p0 = ego_pose_matrix(world, 0.0)
         poses = {c: p0 for c in times}
+    full = sc.config.mode == "full"
     if sc.caster.moving:
         with report.effect("agent_motion", name):
-            for tc, _ in times.values():
+            for tc, _ in times.values() if full else [times[LIDAR_NAME]]:
                 sc.caster.dynamic(tc)
     with report.stage("lidar"):
         pts, labels, range_image = scan_lidar(world, sc.caster, rig, sc.config.sensors, t,
@@ -250,11 +258,11 @@ def _simulate_keyframe(sc: _SceneState, k: int) -> None:
         sd_tok = writer.tok("sample_data", name, k, ch)
         ext_ = "pcd.bin" if ch == LIDAR_NAME else "jpg"
         rel = f"samples/{ch}/{sc.logfile}__{ch}__{tsc}.{ext_}"
-        with report.stage("write_files"):
-            if ch == LIDAR_NAME:
+        if full and ch == LIDAR_NAME:
+            with report.stage("write_files"):
                 writer.write_points(rel, pts)
                 writer.write_lidarseg(sd_tok, labels)
-        if ch != LIDAR_NAME:
+        elif full:
             with report.stage("camera"):
                 img = render_camera(world, sc.caster, rig, ch, tc, poses[ch], rng, report)
             with report.stage("write_files"):
@@ -267,12 +275,15 @@ def _simulate_keyframe(sc: _SceneState, k: int) -> None:
             width=0 if ch == LIDAR_NAME else rig.width,
             height=0 if ch == LIDAR_NAME else rig.height,
             timestamp=int(tsc), is_key_frame=True))  # fmt: skip
-    with report.stage("occupancy"):
+    with report.stage("semantics"):
         sem = sc.voxeliser.semantics(world, t, poses[LIDAR_NAME])
+    with report.stage("mask_lidar"):
         p_ego = xform(rig.sensor_to_ego[LIDAR_NAME], pts[:, :3].astype(np.float64))
         m_lidar = sc.voxeliser.mask_lidar(range_image, p_ego)
+    with report.stage("camera_depth"):
         depths = [camera_depth(sc.caster, rig, ch, t, poses[LIDAR_NAME], *sc.mask_size)
                   for ch in CAMERA_NAMES]  # fmt: skip
+    with report.stage("mask_camera"):
         m_cam = sc.voxeliser.mask_camera(depths, m_lidar)
     with report.stage("write_files"):
         writer.write_occ3d(name, s_tok, sem, m_lidar, m_cam)
@@ -300,6 +311,7 @@ def _finish_scene(sc: _SceneState, log_tok: str) -> None:
     desc = f"{spec.kind.replace('_', '-')}, {spec.behaviour.replace('_', ' ')}"
     desc += ", rain" if eff.weather == "rain" else ", fog" if eff.weather == "fog" else ""
     desc += ", night" if eff.night else ", day"
+    desc += scene_description_suffix(sc.config.mode)
     writer.add("scene", writer.tok("scene", name), name=name, description=f"Simulated {desc}",
                log_token=log_tok, nbr_samples=len(sc.samples),
                first_sample_token=sc.samples[0]["token"],

@@ -62,12 +62,17 @@ class DatasetWriter:
         version: e.g. ``"v1.0-mini"``.
         seed: token seed.
         jpeg_quality: JPEG quality.
+        lidarseg: write the ``lidarseg`` table (False: no ``lidarseg.json``, as a nuScenes
+            dataset without the lidarseg extension).
     """
 
-    def __init__(self, root: Path, version: str, seed: int, jpeg_quality: int = 90):
+    def __init__(
+        self, root: Path, version: str, seed: int, jpeg_quality: int = 90, lidarseg: bool = True
+    ):
         self.root, self.version, self.seed, self.q = Path(root), version, seed, jpeg_quality
         self.tables: dict[str, list[dict]] = {t: [] for t in NUSCENES_TABLES}
-        self.tables["lidarseg"] = []
+        if lidarseg:
+            self.tables["lidarseg"] = []
         self.bytes = 0
         self.files = 0
         for i, name in enumerate(LIDARSEG_CLASSES):
@@ -109,6 +114,8 @@ class DatasetWriter:
 
     def write_lidarseg(self, sd_token: str, labels: np.ndarray) -> str:
         """Write uint8 labels [N] for LiDAR sample_data ``sd_token``; adds the lidarseg record."""
+        if "lidarseg" not in self.tables:
+            raise ValueError("lidarseg: this writer was made with lidarseg=False")
         rel = f"lidarseg/{self.version}/{sd_token}_lidarseg.bin"
         self._write(rel, np.asarray(labels, dtype=np.uint8).tobytes())
         self.add("lidarseg", sd_token, sample_data_token=sd_token, filename=rel)

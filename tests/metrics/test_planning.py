@@ -80,6 +80,14 @@ def test_collision_rates_and_gt_collision_skipping():
     assert r["collision_boxes_mean_to_horizon@1s"] == pytest.approx(1 / 2)
     assert r["collision_boxes_mean_to_horizon@2s"] == pytest.approx(1 / 3)  # step 4 excluded
     assert r["collision_boxes_mean_to_horizon@3s"] == pytest.approx(1 / 5)
+    # The counts behind the rates: hits / evaluated waypoints.
+    assert (
+        r["collision_boxes_hits_at_horizon@1s"],
+        r["collision_boxes_evaluated_at_horizon@1s"],
+    ) == (1, 1)
+    assert r["collision_boxes_evaluated_at_horizon@2s"] == 0
+    assert (r["collision_boxes_hits_mean_to_horizon@3s"],
+            r["collision_boxes_evaluated_mean_to_horizon@3s"]) == (1, 5)  # fmt: skip
 
 
 def test_occupancy_source_and_outside_grid():

@@ -128,6 +128,25 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
     assert cargs["stage.occ_root"] == str(out / "pseudo_labels")
     gt = dict(a.split("=", 1) for a in steps[names.index("world_model")].command[2:])
     assert gt["stage.tokenizer_ckpt"] == str(out / "tokenizer" / "checkpoints" / "best.pt")
+    # Scenario data: the library (occupancy only) feeds the 3D-Occ world model's training; the
+    # held-out interaction split is scored with the same checkpoints.
+    lib, inter = tmp_path / "sim_scenarios", tmp_path / "sim_interactions"
+    sim = {s.name: s for s in steps if s.command[1] == "tools/make_fixtures.py"}
+    assert f"out={lib}" in sim["scenario_data"].command
+    assert f"out={inter}" in sim["interaction_data"].command
+    assert all("mode=occupancy" in s.command for s in sim.values())
+    assert "labels=false" in steps[names.index("scenario_infos")].command
+    assert "scenario_infos" in steps[names.index("world_model")].depends_on
+    assert gt["stage.extra_train_roots"] == f"[{lib}]"
+    assert "stage.extra_train_roots" not in cargs  # the Camera setting trains on its own labels
+    ia = steps[names.index("world_model_interactions")]
+    iargs = dict(a.split("=", 1) for a in ia.command[2:])
+    assert iargs["dataset.data_root"] == str(inter) and iargs["ckpt"] == args["ckpt"]
+    assert set(ia.depends_on) == {"world_model", "interaction_infos"}
+    cfg.scenarios = False
+    assert not {"scenario_data", "world_model_interactions"} & {
+        s.name for s in main_job_steps(cfg, repo)
+    }
 
 
 def test_real_data_main_job_runs_the_paper_experiments_without_simulating(tmp_path):
@@ -144,6 +163,7 @@ def test_real_data_main_job_runs_the_paper_experiments_without_simulating(tmp_pa
     steps = main_job_steps(cfg, repo)
     names = [s.name for s in steps]
     assert "fixtures" not in names and names[0] == "infos" and steps[0].depends_on == ()
+    assert "scenario_data" not in names  # the scenario library is the mini family's
     assert "version=v1.0-trainval" in steps[0].command
     for s in steps[1:]:
         assert set(s.depends_on) <= set(names[: names.index(s.name)]), s.name

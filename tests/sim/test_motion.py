@@ -106,7 +106,7 @@ def test_static_scene_runs_no_motion_or_weather_code(tmp_path):
     ran = {k for k, v in report["effects"].items() if v["ran"]}
     assert ran == {"ego_motion", "agent_motion", "lidar_noise", "camera_noise", "fog", "night"}
     assert report["effects"]["fog"]["scenes"] == ["s-1"]
-    for stage in ("static_build", "lidar", "camera", "occupancy", "write_files"):
+    for stage in ("static_build", "lidar", "camera", "semantics", "mask_camera", "write_files"):
         assert report["stages"][stage]["calls"] > 0
 
 

@@ -124,6 +124,13 @@ def test_extra_train_roots_add_their_train_windows(wm_overrides, converted, tmp_
     )
     with pytest.raises(ValueError, match="stage.extra_train_roots: .* does not exist"):
         WorldModelStage(bad).build_datasets(bad)
+    # A root converted under its own version (a scenario library) is found by that version.
+    (extra / "renderworld_infos" / "v1.0-mini").rename(extra / "renderworld_infos" / "v1.0-lib")
+    three, _ = WorldModelStage(cfg).build_datasets(cfg)
+    assert len(three) == len(two)
+    (extra / "renderworld_infos" / "v1.0-other").symlink_to(infos)
+    with pytest.raises(ValueError, match="several versions .* none is dataset.version"):
+        WorldModelStage(cfg).build_datasets(cfg)
 
 
 def test_pose_step_weighting_names():

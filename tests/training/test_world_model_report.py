@@ -167,3 +167,32 @@ def test_the_forecast_picture_shows_a_turning_window():
     windows = [item(30), item(0), item(0), item(2), item(0), item(-40), item(0)]
     assert turning_window(windows) == 5  # nearest the middle (3) of those turning > 5 deg
     assert turning_window([item(0)] * 4) == 2  # none turns: the middle
+
+
+def test_collision_counts_table_and_csv_hold_the_counts_behind_the_rates(tmp_path):
+    from renderworld.training.stages.world_model_report import (
+        collision_counts_table,
+        write_report,
+    )
+
+    metrics = _metrics("", 0.0)
+    assert collision_counts_table(metrics, HS) == ""  # no counts: no table (older metrics)
+    for m, hits in (("model", 0), ("cv_traj", 3)):
+        for src in ("boxes", "occupancy"):
+            for conv in ("at_horizon", "mean_to_horizon"):
+                for h in ("1s", "2s"):
+                    metrics[f"val/{m}/collision_{src}_hits_{conv}_{h}"] = hits
+                    metrics[f"val/{m}/collision_{src}_evaluated_{conv}_{h}"] = 12
+    table = collision_counts_table(metrics, HS)
+    assert (
+        "| 3D-Occ | CV-trajectory | boxes | at horizon | 3 / 12 (25.0 %) | 3 / 12 (25.0 %) |"
+        in table
+    )
+    assert "| 3D-Occ | model | occupancy | mean to horizon | 0 / 12 (0.0 %) |" in table
+    write_report(metrics, tmp_path, HS, ["h"])
+    md = (tmp_path / "world_model_eval.md").read_text()
+    assert "colliding / evaluated waypoints" in md and table in md
+    rows = list(csv.DictReader(open(tmp_path / "world_model_eval.csv")))
+    cv = next(r for r in rows if r["method"] == "CV-trajectory")
+    assert float(cv["collision_boxes_hits_at_horizon_2s"]) == 3
+    assert float(cv["collision_occupancy_evaluated_mean_to_horizon_1s"]) == 12

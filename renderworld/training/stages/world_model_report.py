@@ -8,7 +8,8 @@ for the Camera setting added by ``tools/eval.py ... pseudo_labels=DIR``.
 
 Printed table and markdown show the headline conventions (mIoU / IoU full volume, L2 at horizon,
 collision vs GT boxes at horizon); the CSV holds these and the others (camera-mask mIoU / IoU,
-mean-to-horizon L2, collision vs GT occupancy, skipped-GT and outside-grid counts, mIoU / IoU /
+mean-to-horizon L2, collision vs GT occupancy, the collisions' hit / evaluated counts, skipped-GT
+and outside-grid counts, mIoU / IoU /
 L2 of the straight and the turning windows, per-class IoU at each horizon). A value that
 does not apply to a method (a baseline without a planner, a planner without a forecast) is "–"
 in the text and markdown, explained by a legend line under the table, and empty in the CSV.
@@ -32,6 +33,7 @@ __all__ = [
     "SETTING_LABELS",
     "SPLITS",
     "NOT_APPLICABLE",
+    "collision_counts_table",
     "report_tables",
     "write_report",
 ]
@@ -118,6 +120,11 @@ def _csv_columns(horizons_s: tuple[float, ...]) -> list[tuple[str, str, float]]:
     for src in PlanningMetric.SOURCES:
         for what in ("gt_skipped", "outside_grid"):
             out.append((f"collision_{src}_{what}", f"collision_{src}_{what}", 1.0))
+        for conv in _CONVENTIONS:
+            for what in ("hits", "evaluated"):
+                for h in hs[:-1]:
+                    name = f"collision_{src}_{what}_{conv}_{h}"
+                    out.append((name, name, 1.0))
     for split in SPLITS:
         out.append((f"{split}_windows", f"{split}/num_windows", 1.0))
         for metric, unit, scale in (("miou", "pct", 100.0), ("iou", "pct", 100.0),
@@ -128,6 +135,48 @@ def _csv_columns(horizons_s: tuple[float, ...]) -> list[tuple[str, str, float]]:
         for h in hs[:-1]:
             out.append((f"iou_{c}_{h}_pct", f"class_iou/{c}_{h}", 100.0))
     return out
+
+
+_CONVENTIONS = ("at_horizon", "mean_to_horizon")
+
+
+def collision_counts_table(
+    metrics: Mapping[str, float],
+    horizons_s: tuple[float, ...],
+    settings: Sequence[tuple[str, str]] = (("3D-Occ", ""),),
+) -> str:
+    """Markdown table of the collision counts behind the rates: colliding / evaluated waypoints
+    per planner, source (GT boxes, GT object occupancy) and convention; "" when the metrics
+    hold no counts (an older metrics file)."""
+    hs = [_hname(h) for h in horizons_s]
+    rows = []
+    for label, prefix in settings:
+        for method, name, _, plans in METHODS:
+            if not plans:
+                continue
+            for src in PlanningMetric.SOURCES:
+                for conv in _CONVENTIONS:
+                    cells = []
+                    for h in hs:
+                        hit = _value(
+                            metrics, f"{prefix}{method}", f"collision_{src}_hits_{conv}_{h}", 1
+                        )
+                        n = _value(
+                            metrics, f"{prefix}{method}", f"collision_{src}_evaluated_{conv}_{h}", 1
+                        )
+                        if hit is None or n is None:
+                            break
+                        rate = f" ({100 * hit / n:.1f} %)" if n else ""
+                        cells.append(f"{int(hit)} / {int(n)}{rate}")
+                    if len(cells) == len(hs):
+                        what = conv.replace("_", " ")
+                        rows.append(
+                            f"| {label} | {name} | {src} | {what} | " + " | ".join(cells) + " |"
+                        )
+    if not rows:
+        return ""
+    head = "| setting | planner | vs GT | convention | " + " | ".join(hs) + " |"
+    return "\n".join([head, "|---|---|---|---|" + "---:|" * len(hs), *rows]) + "\n"
 
 
 def _value(metrics: Mapping[str, float], prefix: str, suffix: str, scale: float) -> float | None:
@@ -222,6 +271,14 @@ def write_report(
     text, md, csv_text = report_tables(metrics, horizons_s, header, settings)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
+    counts = collision_counts_table(metrics, horizons_s, settings)
+    if counts:
+        md += (
+            "\nCollisions: colliding / evaluated waypoints (rate). At horizon: the waypoint at "
+            "the horizon's step; mean to horizon: every step up to it. Steps where the GT "
+            "trajectory itself collides are skipped (CSV: `collision_<source>_gt_skipped`).\n\n"
+            + counts
+        )
     (run_dir / f"{REPORT_BASENAME}.md").write_text(md)
     (run_dir / f"{REPORT_BASENAME}.csv").write_text(csv_text)
     return text

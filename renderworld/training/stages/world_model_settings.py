@@ -257,10 +257,12 @@ def extra_train_roots(cfg: Any) -> list[tuple[Path, Path]]:
 
     Their train splits (GT occupancy) are added to the training windows; validation stays the
     run's own ``dataset.val_split``. Infos are read from
-    ``<root>/renderworld_infos/<dataset.version>``.
+    ``<root>/renderworld_infos/<dataset.version>``, or from the one version folder a root holds
+    (a scenario library is its own version, e.g. ``v1.0-scenarios``).
 
     Raises:
-        ValueError: an entry that is not a folder with converted infos, or a Camera-setting run
+        ValueError: an entry that is not a folder with converted infos, one holding several
+            versions none of which is ``dataset.version``, or a Camera-setting run
             (``stage.occ_root``), whose pseudo labels exist for its own data root only.
     """
     roots = cfg.stage.get("extra_train_roots") or []
@@ -269,16 +271,25 @@ def extra_train_roots(cfg: Any) -> list[tuple[Path, Path]]:
             "stage.extra_train_roots: GT-occupancy roots cannot be mixed into a Camera-setting "
             "run (stage.occ_root is set)"
         )
-    out = []
-    for r in roots:
-        infos = Path(str(r)) / "renderworld_infos" / str(cfg.dataset.version)
-        if not infos.is_dir():
-            raise ValueError(
-                f"stage.extra_train_roots: {infos} does not exist; run tools/create_data.py "
-                f"data_root={r} version={cfg.dataset.version} first"
-            )
-        out.append((Path(str(r)), infos))
-    return out
+    return [(Path(str(r)), _infos_of_root(Path(str(r)), str(cfg.dataset.version))) for r in roots]
+
+
+def _infos_of_root(root: Path, version: str) -> Path:
+    base = root / "renderworld_infos"
+    if (base / version).is_dir():
+        return base / version
+    found = sorted(d for d in base.iterdir() if d.is_dir()) if base.is_dir() else []
+    if len(found) == 1:
+        return found[0]
+    if not found:
+        raise ValueError(
+            f"stage.extra_train_roots: {base / version} does not exist; run tools/create_data.py "
+            f"data_root={root} version=<its version> first"
+        )
+    raise ValueError(
+        f"stage.extra_train_roots: {root} holds infos of several versions "
+        f"{[d.name for d in found]} and none is dataset.version={version!r}"
+    )
 
 
 def frame_cache_dir(cfg: Any) -> Path | None:
