@@ -124,8 +124,11 @@ def plan_interaction(
     duration = (keyframes - 1) * KEYFRAME_DT
     make = _BUILDERS[spec.behaviour]
     k_lo, k_hi = 4, keyframes - 1 - FUTURE_FRAMES
-    for attempt in range(MAX_TRIES):
-        path, ego, agent = make(plan, spec, road, times, duration, rng, attempt)
+    for _ in range(MAX_TRIES):
+        drawn = make(plan, spec, road, times, duration, rng)
+        if drawn is None:  # no keyframe of this draw can show the conflict
+            continue
+        path, ego, agent = drawn
         if not clear_of_ego(ego, agent, duration, 0.1 if agent.label == 2 else 0.25):
             continue
         half = agent.footprint_half()
@@ -149,7 +152,7 @@ def _car(rng, trucks: float = 0.15) -> tuple[str, tuple[float, float, float]]:
     return cat, (w, ln * rng.uniform(0.93, 1.07), h * rng.uniform(0.95, 1.05))
 
 
-def _lead_brake(plan, spec, road, times, duration, rng, attempt):
+def _lead_brake(plan, spec, road, times, duration, rng):
     """A lead car in the ego lane brakes hard to a stop; the ego stops a few metres behind."""
     v = float(spec.speed)
     a_l, a_e = rng.uniform(3.5, 5.0), rng.uniform(2.5, 3.5)
@@ -178,7 +181,7 @@ def _lead_brake(plan, spec, road, times, duration, rng, attempt):
     return plan.path, ego_traj, agent
 
 
-def _cut_in(plan, spec, road, times, duration, rng, attempt):
+def _cut_in(plan, spec, road, times, duration, rng):
     """A slower car in the adjacent lane merges just ahead; the ego slows to its speed."""
     v = float(spec.speed)
     v_c = v * rng.uniform(0.35, 0.6)
@@ -202,7 +205,7 @@ def _cut_in(plan, spec, road, times, duration, rng, attempt):
     return plan.path, ego_trajectory(plan.path, s_e, times), agent
 
 
-def _ped_crossing(plan, spec, road, times, duration, rng, attempt):
+def _ped_crossing(plan, spec, road, times, duration, rng):
     """A pedestrian crosses ahead; the ego brakes, waits until it has passed, then goes."""
     v = float(spec.speed)
     a_e, v_p = rng.uniform(2.0, 3.5), rng.uniform(1.1, 1.6)
@@ -211,11 +214,11 @@ def _ped_crossing(plan, spec, road, times, duration, rng, attempt):
     k = int(np.ceil((t_b + 0.2) / KEYFRAME_DT))
     t_k = k * KEYFRAME_DT
 
-    # Where the CV extrapolation from keyframe k is at each future keyframe (before braking
-    # is finished the displacement is close to v * 0.5 s).
     def brake(t, s):
         return (0.0, 1.5, a_e) if t >= t_b else (v, 1.5, a_e)
 
+    # The crossing line goes where the CV extrapolation from keyframe k is at a future keyframe,
+    # 2-5 m beyond the ego's front bumper once it stands.
     s_b, _ = integrate_speed(times, v, brake)
     sk, sk0 = np.interp(t_k, times, s_b), np.interp(t_k - KEYFRAME_DT, times, s_b)
     cv = sk + np.arange(1, FUTURE_FRAMES + 1) * (sk - sk0)
@@ -247,7 +250,7 @@ def _ped_crossing(plan, spec, road, times, duration, rng, attempt):
     return plan.path, ego_trajectory(plan.path, s_e, times), agent
 
 
-def _turn_oncoming(plan, spec, road, times, duration, rng, attempt):
+def _turn_oncoming(plan, spec, road, times, duration, rng):
     """Unprotected left turn: the ego creeps into the junction, waits for an oncoming car, turns."""
     v, v_o = float(spec.speed), rng.uniform(7.0, 11.0)
     a_e = rng.uniform(1.5, 2.5)
@@ -270,7 +273,7 @@ def _turn_oncoming(plan, spec, road, times, duration, rng, attempt):
     ks = [k for k in range(4, int(duration / KEYFRAME_DT) - FUTURE_FRAMES + 1)
           if t_b < k * KEYFRAME_DT < t_stop - 0.3]  # fmt: skip
     if not ks:
-        return path, ego_b, _static_far(rng)
+        return None
     k = ks[-1 - int(rng.integers(min(2, len(ks))))]
     t_k = k * KEYFRAME_DT
     (p0, _), (p1, _) = ego_b.pose(t_k - KEYFRAME_DT), ego_b.pose(t_k)
@@ -279,7 +282,7 @@ def _turn_oncoming(plan, spec, road, times, duration, rng, attempt):
     cvy = p1[1] + j * d[1]
     reach = np.nonzero(cvy + EGO_WIDTH / 2 > y_l - size[0] / 2 + 0.3)[0]
     if not len(reach):
-        return path, ego_b, _static_far(rng)
+        return None
     jj = int(reach[min(int(rng.integers(2)), len(reach) - 1)])
     x_anchor = p1[0] + (jj + 1) * d[0] + rng.uniform(-1.0, 1.0)
     x = x_anchor - v_o * (times - (t_k + (jj + 1) * KEYFRAME_DT))
@@ -308,13 +311,7 @@ def _box_max_y(xy: np.ndarray, hd: np.ndarray) -> np.ndarray:
     return c + EGO_LENGTH / 2 * np.abs(np.sin(hd)) + EGO_WIDTH / 2 * np.abs(np.cos(hd))
 
 
-def _static_far(rng) -> SimObject:
-    """A placeholder that fails the CV check (a draw without a usable keyframe is redrawn)."""
-    traj = Trajectory.fixed(np.array([-1.0, 1e4]), 1e4, 1e4, 0.0)
-    return make_object("scn_none", "vehicle.car", OBJECT_CATEGORIES["vehicle.car"], traj, rng)
-
-
-def _overtake_parked(plan, spec, road, times, duration, rng, attempt):
+def _overtake_parked(plan, spec, road, times, duration, rng):
     """A car stands in the ego lane; the ego slows, swerves into the next lane and back."""
     v = float(spec.speed)
     cat, size = _car(rng, trucks=0.25)
