@@ -10,12 +10,11 @@ near the origin heading +x.
 from __future__ import annotations
 
 import dataclasses
-import json
 from dataclasses import dataclass, field
-from fnmatch import fnmatchcase as fnmatch
 from typing import Any
 
 from renderworld.constants import LIDARSEG_CLASSES, MINI_TRAIN_SCENES, MINI_VAL_SCENES
+from renderworld.sim.splits import match_splits, splits_json
 
 __all__ = [
     "ROAD_KINDS",
@@ -346,23 +345,11 @@ class SimConfig:
         """
         if self.splits is None:
             return None
-        ok = isinstance(self.splits, dict) and all(
-            isinstance(k, str) and isinstance(v, list) and all(isinstance(p, str) for p in v)
-            for k, v in self.splits.items()
-        )
-        if not ok or not self.splits:
-            raise _err("splits", "{split: [scene-name patterns]}", self.splits)
-        out: dict[str, list[str]] = {k: [] for k in self.splits}
-        for name, _ in self.named_scenes:
-            hit = [k for k, pats in self.splits.items() if any(fnmatch(name, p) for p in pats)]
-            if len(hit) != 1:
-                raise _err("splits", f"exactly one split matching scene {name!r}", hit)
-            out[hit[0]].append(name)
-        return out
+        return match_splits(self.splits, [name for name, _ in self.named_scenes])
 
     def splits_json(self) -> bytes:
-        """``splits.json`` bytes (sorted-key JSON) of :meth:`split_lists`."""
-        return json.dumps(self.split_lists(), indent=1, sort_keys=True).encode()
+        """``splits.json`` bytes of :meth:`split_lists`."""
+        return splits_json(self.split_lists())
 
     @property
     def named_scenes(self) -> list[tuple[str, SceneSpec]]:
