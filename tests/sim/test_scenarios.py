@@ -253,3 +253,16 @@ def test_splits_must_cover_each_scene_once():
         {"scenes": scenes, "scene_names": names, "splits": {"train": ["scene-5*"], "val": ["*-6*"]}}
     )
     assert cfg.split_lists() == {"train": ["scene-5000"], "val": ["scene-6000"]}
+
+
+def test_written_dataset_ships_its_split(tmp_path):
+    """The held-out preset, simulated (occupancy only), is all val for the infos builder."""
+    from renderworld.sim import simulate
+
+    cfg = config_from_preset("interactions", num_scenes=1, mode="occupancy")
+    simulate(cfg, tmp_path / "data", progress=False)
+    vdir = tmp_path / "data" / cfg.version
+    assert json.loads((vdir / "splits.json").read_text()) == {"val": ["scene-6000"]}
+    assert assign_splits(["scene-6000"], vdir, strict=True) == {"scene-6000": "val"}
+    scene = json.loads((vdir / "scene.json").read_text())[0]
+    assert scene["nbr_samples"] == cfg.keyframes and "lead brake" in scene["description"]
