@@ -7,7 +7,7 @@ and 6 future keyframes, runs the planning collision metric (``collisions_with_bo
 centred at each waypoint, 0.5 m BEV raster) on the CV plan (the last 0.5 s displacement
 repeated 6 times) and on the true future against the boxes of every vehicle, pedestrian and
 movable object within the grid. Prints the fraction of windows with a collision at any of the
-6 steps, for all scenes and for the interaction scenes.
+6 steps, for all scenes, the interaction scenes and each behaviour.
 """
 
 from __future__ import annotations
@@ -44,7 +44,8 @@ def _boxes(world, k, p, yaw):
 
 
 def rates(preset: str) -> dict[str, tuple[int, int, int]]:
-    """{group: (windows, CV collisions, true-future collisions)} for ``all`` / ``interaction``."""
+    """{group: (windows, CV collisions, true-future collisions)}: ``all``, ``interaction`` and
+    one group per behaviour."""
     cfg = config_from_preset(preset)
     res = {"all": [0, 0, 0], "interaction": [0, 0, 0]}
     for world in build_worlds(cfg):
@@ -56,8 +57,10 @@ def rates(preset: str) -> dict[str, tuple[int, int, int]]:
             cv = j * (rot @ (p - p0))
             gt = (tr.pose((k + j[:, 0]) * KEYFRAME_DT)[0] - p) @ rot.T
             hit, _ = collisions_with_boxes(np.stack([cv, gt]), boxes)
-            groups = ["all"] + (["interaction"] if world.spec.behaviour in INTERACTIONS else [])
+            b = world.spec.behaviour
+            groups = ["all", *(["interaction"] if b in INTERACTIONS else []), b]
             for g in groups:
+                res.setdefault(g, [0, 0, 0])
                 res[g][0] += 1
                 res[g][1] += int(hit[0].any())
                 res[g][2] += int(hit[1].any())
@@ -65,11 +68,11 @@ def rates(preset: str) -> dict[str, tuple[int, int, int]]:
 
 
 def main(presets: list[str]) -> None:
-    print(f"{'preset':<14}{'scenes':<14}{'windows':>8}{'CV coll.':>10}{'GT coll.':>10}")
+    print(f"{'preset':<14}{'scenes':<18}{'windows':>8}{'CV coll.':>10}{'GT coll.':>10}")
     for preset in presets:
         for group, (n, cv, gt) in rates(preset).items():
             if n:
-                print(f"{preset:<14}{group:<14}{n:>8}{cv / n:>10.1%}{gt / n:>10.1%}")
+                print(f"{preset:<14}{group:<18}{n:>8}{cv / n:>10.1%}{gt / n:>10.1%}")
 
 
 if __name__ == "__main__":
