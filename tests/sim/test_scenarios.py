@@ -235,6 +235,8 @@ def test_presets_load_validate_and_split(tmp_path):
     # A num_scenes override keeps the split rule; the first scenes of each build.
     few = config_from_preset("scenarios", num_scenes=3)
     assert few.split_lists() == {"train": ["scene-5000", "scene-5001", "scene-5002"]}
+    more = config_from_preset("interactions", num_scenes=20)
+    assert more.split_lists()["val"][-1] == "scene-9019"
     assert len(build_worlds(config_from_preset("interactions", num_scenes=2))) == 2
 
 
