@@ -159,7 +159,8 @@ def _lead_brake(plan, spec, road, times, duration, rng):
     react, gap = rng.uniform(0.5, 0.9), rng.uniform(2.0, 3.5)  # s; m bumper to bumper
     t_b = duration * rng.uniform(0.2, 0.32)
     cat, size = _car(rng)
-    # Gap closed while the ego reacts and brakes more gently than the lead (see docs/scenarios.md).
+    # Initial gap = final gap + what closes while the ego reacts and brakes more gently than
+    # the lead; the lead is never faster than the ego, so the final gap is the smallest.
     gap0 = gap + v * react + 0.5 * v * v * (1 / a_e - 1 / a_l)
     t_stop = t_b + react + v / a_e
     t_go_l = t_stop + rng.uniform(1.5, 3.0)
