@@ -9,6 +9,7 @@ when ray casting starts, so ``import renderworld.sim`` stays light.
 from renderworld.sim.effects import EFFECTS, EffectReport
 from renderworld.sim.scene import (
     BEHAVIOURS,
+    INTERACTIONS,
     OBJECT_CATEGORIES,
     ROAD_KINDS,
     WEATHERS,
@@ -24,6 +25,7 @@ from renderworld.sim.traffic import build_world
 __all__ = [
     "BEHAVIOURS",
     "EFFECTS",
+    "INTERACTIONS",
     "OBJECT_CATEGORIES",
     "REPORT_NAME",
     "ROAD_KINDS",
