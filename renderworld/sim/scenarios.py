@@ -26,9 +26,10 @@ from renderworld.sim.objects import SimObject, make_object
 from renderworld.sim.roads import Road
 from renderworld.sim.scene import INTERACTIONS, OBJECT_CATEGORIES, SceneSpec
 
-__all__ = ["INTERACTIONS", "MAX_TRIES", "plan_interaction", "cv_hits", "clear_of_ego"]
+__all__ = ["INTERACTIONS", "MAX_TRIES", "CV_DEPTH", "plan_interaction", "cv_hits", "clear_of_ego"]
 
 MAX_TRIES = 40
+CV_DEPTH = 0.3  # metres the CV box must reach into the agent's box
 _FRONT = EGO_CENTRE_OFFSET + EGO_LENGTH / 2  # rear axle -> front bumper, metres
 _BACK = EGO_LENGTH / 2 - EGO_CENTRE_OFFSET  # rear axle -> rear bumper, metres
 _EGO_MARGIN = np.array([EGO_LENGTH / 2 + 0.5, EGO_WIDTH / 2 + 0.3])  # as traffic._accept
@@ -76,12 +77,14 @@ def xy_trajectory(times: np.ndarray, xy: np.ndarray) -> Trajectory:
     return Trajectory(times, xy, yaw)
 
 
-def cv_hits(ego: Trajectory, agent: Trajectory, agent_half, k: int) -> bool:
+def cv_hits(ego: Trajectory, agent: Trajectory, agent_half, k: int, depth: float = 0.0) -> bool:
     """Whether the CV extrapolation of the ego from keyframe ``k`` overlaps the agent.
 
     The last 0.5 s displacement is repeated for the next :data:`FUTURE_FRAMES` keyframes; the
     ``EGO_LENGTH x EGO_WIDTH`` box is centred at each rear-axle waypoint with its heading along
     the displacement (the current yaw when standing), as the planning collision metric does.
+    ``depth`` (metres) shrinks the ego box on every side, so that only an overlap that deep
+    counts (the metric rasterises boxes on 0.5 m cells and misses grazing contacts).
     """
     t = k * KEYFRAME_DT
     (p0, _), (p1, yaw) = ego.pose(t - KEYFRAME_DT), ego.pose(t)
@@ -89,7 +92,7 @@ def cv_hits(ego: Trajectory, agent: Trajectory, agent_half, k: int) -> bool:
     hd = float(np.arctan2(d[1], d[0])) if np.hypot(*d) >= 0.05 else float(yaw)
     j = np.arange(1, FUTURE_FRAMES + 1)
     ac, ay = agent.pose(t + j * KEYFRAME_DT)
-    half = [EGO_LENGTH / 2, EGO_WIDTH / 2]
+    half = [EGO_LENGTH / 2 - depth, EGO_WIDTH / 2 - depth]
     return bool(rects_overlap(p1 + j[:, None] * d, hd, half, ac, ay, agent_half).any())
 
 
@@ -132,7 +135,7 @@ def plan_interaction(
         if not clear_of_ego(ego, agent, duration, 0.1 if agent.label == 2 else 0.25):
             continue
         half = agent.footprint_half()
-        if any(cv_hits(ego, agent.trajectory, half, k) for k in range(k_lo, k_hi + 1)):
+        if any(cv_hits(ego, agent.trajectory, half, k, CV_DEPTH) for k in range(k_lo, k_hi + 1)):
             plan.path, plan.trajectory = path, ego
             plan.scripted.append(agent)
             return
@@ -322,7 +325,7 @@ def _overtake_parked(plan, spec, road, times, duration, rng):
     u_grid = np.linspace(0, 1, 401)
     u_c = float(np.interp(need / lw, _ss(u_grid), u_grid))
     x1 = v * duration * rng.uniform(0.2, 0.3)
-    l1 = max(2.2 * v, 16.0) * rng.uniform(1.0, 1.15)
+    l1 = max(2.2 * v, 12.0) * rng.uniform(1.0, 1.15)
     l2 = l1 * rng.uniform(1.0, 1.3)
     x_rear = x1 + u_c * l1 + _FRONT + rng.uniform(0.5, 2.5)
     x_car = x_rear + size[1] / 2
