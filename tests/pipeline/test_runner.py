@@ -134,7 +134,7 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
     sim = {s.name: s for s in steps if s.command[1] == "tools/make_fixtures.py"}
     assert f"out={lib}" in sim["scenario_data"].command
     assert f"out={inter}" in sim["interaction_data"].command
-    assert all("mode=occupancy" in s.command for s in sim.values())
+    assert all("mode=occupancy" in sim[n].command for n in ("scenario_data", "interaction_data"))
     assert "labels=false" in steps[names.index("scenario_infos")].command
     assert "scenario_infos" in steps[names.index("world_model")].depends_on
     assert gt["stage.extra_train_roots"] == f"[{lib}]"
