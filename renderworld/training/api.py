@@ -135,7 +135,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
                     f"stage {stage.name!r} does not, remove {key}={cfg.get(key)}"
                 )
         seed_everything(_seed(cfg))
-        _, val_set = stage.build_datasets(cfg)
+        val_set = stage.build_val_dataset(cfg)
         if val_set is None:
             raise ValueError(f"stage {stage.name!r}: build_datasets returned no validation set")
         model = stage.build_model(cfg)

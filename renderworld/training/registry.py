@@ -53,6 +53,11 @@ class Stage(ABC):
     def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
         """Return ``(train, val)`` map-style datasets; ``val`` may be None."""
 
+    def build_val_dataset(self, cfg: Any) -> Dataset | None:
+        """The validation dataset alone (what ``tools/eval.py`` reads); by default the second
+        of :meth:`build_datasets`. Override when the train split need not exist to evaluate."""
+        return self.build_datasets(cfg)[1]
+
     @abstractmethod
     def loss(self, model: nn.Module, batch: Any) -> tuple[torch.Tensor, Mapping[str, Any]]:
         """Return ``(loss, logs)`` for one micro-batch already on the model's device.

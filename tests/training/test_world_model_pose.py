@@ -163,3 +163,23 @@ def test_trains_in_the_camera_setting(wm_overrides, converted, tmp_path):
                                  f"stage.occ_root={labels}", "trainer.max_steps=2",
                                  "trainer.val_every=2"]))  # fmt: skip
     assert math.isfinite(metrics["val/model/miou_1s"]) and math.isfinite(metrics["val/l2"])
+
+
+def test_a_held_out_dataset_without_a_train_split_evaluates(wm_overrides, converted, tmp_path):
+    """The interaction split puts every scene in val: evaluation must not need infos_train."""
+    import shutil
+
+    _, infos = converted
+    val_only = tmp_path / "infos"
+    val_only.mkdir()
+    for f in infos.iterdir():
+        if f.is_file() and not f.name.startswith("infos_train"):
+            shutil.copy(f, val_only / f.name)
+    over = [o for o in wm_overrides if not o.startswith("stage.infos_dir=")]
+    cfg = compose_cfg([*over, f"stage.infos_dir={val_only}", f"run_dir={tmp_path}"])
+    stage = WorldModelStage(cfg)
+    with pytest.raises(Exception, match="infos_train"):
+        stage.build_datasets(cfg)  # training does need it ...
+    val = stage.build_val_dataset(cfg)  # ... evaluation does not
+    full = compose_cfg([*wm_overrides, f"run_dir={tmp_path}"])
+    assert len(val) == len(WorldModelStage(full).build_datasets(full)[1]) > 0

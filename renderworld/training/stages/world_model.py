@@ -104,18 +104,25 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         return tuple(m for m in wme.FORECASTERS if m not in wmp.POSE_METHODS or m in extra)
 
     # ------------------------------------------------------------------ Stage API
+    def _windows(self, cfg: Any, split: str, occ_root, gt_targets: bool) -> wme.WorldModelWindows:
+        st = self.settings
+        return wme.WorldModelWindows(
+            load_infos(infos_dir(cfg), split), str(cfg.dataset.data_root), self.grid, st.history,
+            st.future, occ_root, gt_targets, frame_cache_dir(cfg),
+        )  # fmt: skip
+
+    def build_val_dataset(self, cfg: Any) -> Dataset:
+        """Validation windows only: a held-out dataset (all scenes in val) has no train split."""
+        _ = self.tokenizer  # a wrong stage.tokenizer_ckpt fails before any data is read
+        self._val_set = self._windows(cfg, cfg.dataset.val_split, self._val_occ_root, True)
+        return self._val_set
+
     def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
         _ = self.tokenizer  # a wrong stage.tokenizer_ckpt fails before any data is read
-        folder = infos_dir(cfg)
-        root, st = str(cfg.dataset.data_root), self.settings
-
-        cache = frame_cache_dir(cfg)
+        st, cache = self.settings, frame_cache_dir(cfg)
 
         def windows(split: str, occ_root, gt_targets: bool) -> wme.WorldModelWindows:
-            infos = load_infos(folder, split)
-            return wme.WorldModelWindows(
-                infos, root, self.grid, st.history, st.future, occ_root, gt_targets, cache
-            )
+            return self._windows(cfg, split, occ_root, gt_targets)
 
         # Camera setting: train on pseudo labels; validate pseudo-label inputs against GT (with
         # pseudo_labels=DIR at eval, the same windows give both settings' inputs).
