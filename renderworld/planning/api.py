@@ -240,7 +240,9 @@ class Planner:
         disp = torch.from_numpy(np.asarray(displacements, dtype=np.float32)).to(self.device)
         with torch.inference_mode():
             t1 = self._sync()
-            out = self.world_model.rollout(history_tokens, disp, cmd, steps=s)
+            out = self.world_model.rollout(
+                history_tokens, disp, cmd, steps=s, trajectory_only=not forecast
+            )
             traj = out.trajectory.float().cpu().numpy()
             t2 = self._sync()
             occ = None

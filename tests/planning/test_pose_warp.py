@@ -332,3 +332,18 @@ def test_schema_1_token_bundles_still_load(tmp_path):
     assert loaded.kind == "tokens"
     req = make_request()
     np.testing.assert_array_equal(loaded.plan(req).trajectory, planner.plan(req).trajectory)
+
+
+def test_retain_freed_memory_checks_its_arguments():
+    import ctypes.util
+
+    from renderworld.planning import retain_freed_memory
+
+    with pytest.raises(ValueError, match="mmap_threshold: expected a positive int"):
+        retain_freed_memory(mmap_threshold=0)
+    with pytest.raises(ValueError, match="trim_threshold: expected a positive int"):
+        retain_freed_memory(trim_threshold=1.5)
+    with pytest.raises(ValueError, match="mmap_threshold: expected at most 33554432 bytes"):
+        retain_freed_memory(mmap_threshold=2**30)
+    glibc = "libc.so" in str(ctypes.util.find_library("c"))
+    assert retain_freed_memory() is glibc
