@@ -12,8 +12,9 @@ Usage::
 With ``--baseline REF`` it compares commit REF's planner with this checkout's, each in a worker
 process (``planner_worker.py``: untrained models, rounds interleaved): REF's ``today`` / session
 ``full`` / ``traj`` beside this checkout's ``full`` / ``traj`` / ``full bf16`` and the pose-warp
-world model's ``pw full`` / ``pw traj`` (and the same after ``retain_freed_memory()``, rows
-``new+mem``), with ``x old`` = REF's wall time / this one's.
+world model's ``pw full`` / ``pw traj`` (and the same with the opt-in loop settings
+``retain_freed_memory()`` + ``Planner(world_model_threads=1)``, rows ``new+opt``), with
+``x old`` = REF's wall time / this one's.
 Without it, the in-process modes below (one source tree).
 
 Modes, all on the same tokenizer and world model weights, one new frame per plan:
@@ -247,8 +248,8 @@ def _commit() -> str:
 
 OLD_MODES = ("today", "full", "traj")
 NEW_MODES = ("full", "traj", "full bf16", "pw full", "pw traj")
-#: This checkout after renderworld.planning.retain_freed_memory() (new+mem rows).
-MEM_MODES = ("full", "traj", "pw full", "pw traj")
+#: This checkout with retain_freed_memory() and Planner(world_model_threads=1) (new+opt rows).
+OPT_MODES = ("full", "traj", "pw full", "pw traj")
 
 
 def _extract(ref: str, dest: Path) -> Path:
@@ -261,11 +262,12 @@ def _extract(ref: str, dest: Path) -> Path:
     return dest
 
 
-def _worker(tree: Path, case: str, threads: int, modes, retain: bool = False) -> subprocess.Popen:
+def _worker(tree: Path, case: str, threads: int, modes, opt: bool = False) -> subprocess.Popen:
     script = Path(__file__).resolve().parent / "planner_worker.py"
+    extra = ["--retain-memory", "--world-model-threads", "1"] if opt else []
     proc = subprocess.Popen(
         [sys.executable, str(script), "--tree", str(tree), "--case", case,
-         "--threads", str(threads), "--modes", *modes, *(["--retain-memory"] if retain else [])],
+         "--threads", str(threads), "--modes", *modes, *extra],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
     line = proc.stdout.readline().strip()
@@ -301,7 +303,7 @@ def compare(ref: str, cases, threads_list, reps: dict) -> None:
                 sides = {
                     "old": (_worker(old_tree, case, threads, OLD_MODES), OLD_MODES),
                     "new": (_worker(repo, case, threads, NEW_MODES), NEW_MODES),
-                    "new+mem": (_worker(repo, case, threads, MEM_MODES, retain=True), MEM_MODES),
+                    "new+opt": (_worker(repo, case, threads, OPT_MODES, opt=True), OPT_MODES),
                 }
                 runs = {(side, m): [] for side, (_, modes) in sides.items() for m in modes}
                 try:

@@ -16,7 +16,8 @@ Modes (one new frame per plan, streaming session unless noted):
 * ``pw full`` / ``pw traj``: pose-warp world model (``stage.forecaster=pose_warp``), session,
   forecast on / off.
 
-``--retain-memory`` calls :func:`renderworld.planning.retain_freed_memory` first.
+``--retain-memory`` calls :func:`renderworld.planning.retain_freed_memory` first;
+``--world-model-threads N`` passes ``Planner(world_model_threads=N)``.
 """
 
 from __future__ import annotations
@@ -98,6 +99,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, required=True)
     ap.add_argument("--modes", nargs="+", choices=MODES, required=True)
     ap.add_argument("--retain-memory", action="store_true", help="retain_freed_memory() first")
+    ap.add_argument("--world-model-threads", type=int, default=None)
     args = ap.parse_args()
     sys.path.insert(0, os.path.abspath(args.tree))
     import torch
@@ -122,6 +124,8 @@ def main() -> None:
         if key not in planners:
             tok, wm = build(args.case, key.startswith("pw"))
             opts = {"fast": key != "today"}
+            if args.world_model_threads:
+                opts["world_model_threads"] = args.world_model_threads
             if key == "bf16":
                 opts["precision"] = "bfloat16"
             planners[key] = Planner(tok, wm, **opts)

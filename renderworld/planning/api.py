@@ -28,6 +28,11 @@ Execution options (:class:`Planner`):
   ``"reduce-overhead"`` = CUDA graphs on a GPU, ``"max-autotune"``); if compiling fails the
   planner warns once and runs eagerly.
 * ``pin_memory``: copy the forecast into pinned host memory (CUDA only; default on for CUDA).
+* ``world_model_threads``: torch intra-op threads while the world model runs (None: the
+  process's setting). The mini world model's ops are small (625 cells x 64 channels): on a CPU
+  one thread runs its rollout faster than two, which wait on each other at every op, while the
+  encoder and decoder convolutions still use every thread. The setting is restored after each
+  call (it is process-wide: do not plan from several Python threads with it set).
 """
 
 from __future__ import annotations
@@ -76,6 +81,7 @@ class Planner:
         precision: ``"float32"`` or ``"bfloat16"`` (the decoder's autocast dtype).
         compile: None or a ``torch.compile`` mode for the decoder.
         pin_memory: pinned host memory for the forecast copy (None: on for CUDA devices).
+        world_model_threads: intra-op threads of the world model's part (None: unchanged).
     """
 
     def __init__(
@@ -89,6 +95,7 @@ class Planner:
         precision: str = "float32",
         compile: str | None = None,
         pin_memory: bool | None = None,
+        world_model_threads: int | None = None,
     ):
         for name in ("encode", "decode"):
             if not callable(getattr(tokenizer, name, None)):
@@ -106,6 +113,13 @@ class Planner:
             raise ValueError(f"precision: expected one of {tuple(PRECISIONS)}, got {precision!r}")
         if compile not in COMPILE_MODES:
             raise ValueError(f"compile: expected one of {COMPILE_MODES}, got {compile!r}")
+        if world_model_threads is not None and (
+            type(world_model_threads) is not int or world_model_threads < 1
+        ):
+            raise ValueError(
+                f"world_model_threads: expected None or an int >= 1, got {world_model_threads!r}"
+            )
+        self.world_model_threads = world_model_threads
         self.device = torch.device(device)
         if pin_memory is None:
             pin_memory = self.device.type == "cuda"
@@ -152,6 +166,20 @@ class Planner:
         if dtype is None:
             return contextlib.nullcontext()
         return torch.autocast(self.device.type, dtype=dtype)
+
+    @contextlib.contextmanager
+    def _world_model_threads(self):
+        """``world_model_threads`` intra-op threads inside, the previous count restored after."""
+        before = torch.get_num_threads()
+        n = self.world_model_threads
+        if n is None or n == before:
+            yield
+            return
+        torch.set_num_threads(n)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(before)
 
     def encode(self, occ: torch.Tensor) -> Tokens:
         """Occupancy [N, X, Y, Z] uint8 (on ``device``) -> checked :class:`Tokens` [N, G, h, w]."""
@@ -204,7 +232,8 @@ class Planner:
         with torch.inference_mode():
             t0 = self._sync()
             hist = history_poses(displacements, yaws).to(self.device)
-            poses, _ = self.world_model.predict_poses(hist, cmd, occ[:, -1])
+            with self._world_model_threads():
+                poses, _ = self.world_model.predict_poses(hist, cmd, occ[:, -1])
             traj = poses[..., :2].float().cpu().numpy()
             ms["world_model"] = 1e3 * (self._sync() - t0)
             fc = None
@@ -240,9 +269,10 @@ class Planner:
         disp = torch.from_numpy(np.asarray(displacements, dtype=np.float32)).to(self.device)
         with torch.inference_mode():
             t1 = self._sync()
-            out = self.world_model.rollout(
-                history_tokens, disp, cmd, steps=s, trajectory_only=not forecast
-            )
+            with self._world_model_threads():
+                out = self.world_model.rollout(
+                    history_tokens, disp, cmd, steps=s, trajectory_only=not forecast
+                )
             traj = out.trajectory.float().cpu().numpy()
             t2 = self._sync()
             occ = None

@@ -106,7 +106,8 @@ def forecast_from_poses(planner, occ, hist, poses, command) -> tuple[torch.Tenso
     base_codes = codes[b * (h - 1) :].view(b, s, *codes.shape[1:])
     seq = torch.cat([hist_codes, base_codes], dim=1)
     seq_poses = torch.cat([hist[:, : h - 1], poses], dim=1)
-    logits = model(seq, seq_poses, command)
+    with planner._world_model_threads():
+        logits = model(seq, seq_poses, command)
     future = torch.stack([lg.argmax(dim=2) for lg in logits], dim=2)  # [B, S, G, h, w]
     t3 = planner._sync()
     net = planner._decode_codes(future.flatten(0, 1)).view(warped.shape).to(warped.dtype)

@@ -347,3 +347,25 @@ def test_retain_freed_memory_checks_its_arguments():
         retain_freed_memory(mmap_threshold=2**30)
     glibc = "libc.so" in str(ctypes.util.find_library("c"))
     assert retain_freed_memory() is glibc
+
+
+@pytest.mark.parametrize("kind", ["tokens", "pose_warp"])
+def test_world_model_threads_are_used_and_restored(kind):
+    from tests.planning.test_api import make_planner as token_planner
+    from tests.planning.test_api import make_request
+
+    ref = token_planner() if kind == "tokens" else make_planner()
+    req = make_request() if kind == "tokens" else request()
+    seen = []
+    planner = Planner(ref.tokenizer, ref.world_model, world_model_threads=2)
+    net = planner.world_model if kind == "tokens" else planner.world_model.net
+    net.register_forward_pre_hook(lambda *_: seen.append(torch.get_num_threads()))
+    before = torch.get_num_threads()  # 1 in these tests (conftest)
+    res = planner.plan(req)
+    assert seen and set(seen) == {2} and torch.get_num_threads() == before
+    want = ref.plan(req)
+    np.testing.assert_allclose(res.trajectory, want.trajectory, rtol=0, atol=1e-5)
+    assert (res.occupancy_forecast == want.occupancy_forecast).mean() >= 0.999
+    for bad in (0, 1.0, "2"):
+        with pytest.raises(ValueError, match="world_model_threads: expected None or an int >= 1"):
+            Planner(ref.tokenizer, ref.world_model, world_model_threads=bad)
