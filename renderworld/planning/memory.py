@@ -3,8 +3,8 @@
 Every plan allocates and frees the same few hundred intermediate tensors. glibc hands blocks
 above its mmap threshold (128 KiB at start) straight back to the operating system when they are
 freed, and trims the heap top above 128 KiB, so the next plan takes the same memory again as
-fresh pages, each one a page fault and a zeroed page: ~1,500 minor faults (~6 MB zeroed) per
-trajectory-only plan of the mini planner (`benchmarks/bench_planner.py --baseline`). Raising
+fresh pages, each one a page fault and a zeroed page: 1,300-2,600 minor faults per
+trajectory-only plan of the mini token planner, 8-15 after this call (docs/planner.md). Raising
 both thresholds keeps those blocks in the heap for reuse.
 
 This is a process-wide allocator setting, so the planner never changes it by itself: call
