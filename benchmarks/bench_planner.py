@@ -33,7 +33,8 @@ Modes, all on the same tokenizer and world model weights, one new frame per plan
 
 Cases:
 
-* ``mini 50x50x4``: the demo's trained checkpoints when present (``make demo``), else
+* ``mini 50x50x4``: the demo's trained checkpoints when present (``make demo``; its world
+  model is the pose-warp kind, requests carry ``ego_yaws``), else
   **untrained** models of the same sizes (experiment=tokenizer_mini / world_model_mini: AM-VAE
   latent 25x25, 64 channels, 256 codes, base 32, 1 res block, no attention; world model D=64,
   2 scales x 1 block). Latency depends on the shapes, not on the weights.
@@ -88,7 +89,8 @@ def make_request(grid, history, rng) -> PlanRequest:
     xs, ys = rng.integers(0, grid[0], n), rng.integers(0, grid[1], n)
     occ[:, xs, ys, 1] = rng.integers(1, 17, n)
     disp = np.tile([[4.0, 0.1]], (history - 1, 1))
-    return PlanRequest(occ, disp, "straight")
+    yaws = np.linspace(-0.05 * (history - 1), 0.0, history)  # read by pose-warp models only
+    return PlanRequest(occ, disp, "straight", ego_yaws=yaws)
 
 
 def _models(tok_cfg: TokenizerConfig, **wm) -> tuple:
@@ -134,7 +136,7 @@ def _run_session(forecast: bool):
     def run(planner: Planner, req: PlanRequest, session: PlannerSession) -> dict:
         t0 = time.perf_counter()
         session.push(req.occupancy[-1])  # the new frame: one encode
-        res = session.plan(req.ego_displacements, req.command, forecast=forecast)
+        res = session.plan(req.ego_displacements, req.command, forecast, req.ego_yaws)
         return {**res.timings, "wall": 1e3 * (time.perf_counter() - t0)}
 
     return run
