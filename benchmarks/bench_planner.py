@@ -7,6 +7,15 @@ Usage::
         [--modes today "new full" "new traj" "full bf16" "fast plan"]
         [--mini-tokenizer outputs/demo/tokenizer/checkpoints/best.pt]
         [--mini-world-model outputs/demo/world_model/checkpoints/best.pt]
+    PYTHONPATH=. python benchmarks/bench_planner.py --baseline REF [--threads 1 2] ...
+
+With ``--baseline REF`` it compares commit REF's planner with this checkout's, each in a worker
+process (``planner_worker.py``: untrained models, rounds interleaved): REF's ``today`` / session
+``full`` / ``traj`` beside this checkout's ``full`` / ``traj`` / ``full bf16`` and the pose-warp
+world model's ``pw full`` / ``pw traj`` (and the same with the opt-in loop settings
+``retain_freed_memory()`` + ``Planner(world_model_threads=1)``, rows ``new+opt``), with
+``x old`` = REF's wall time / this one's.
+Without it, the in-process modes below (one source tree).
 
 Modes, all on the same tokenizer and world model weights, one new frame per plan:
 
@@ -24,7 +33,8 @@ Modes, all on the same tokenizer and world model weights, one new frame per plan
 
 Cases:
 
-* ``mini 50x50x4``: the demo's trained checkpoints when present (``make demo``), else
+* ``mini 50x50x4``: the demo's trained checkpoints when present (``make demo``; its world
+  model is the pose-warp kind, requests carry ``ego_yaws``), else
   **untrained** models of the same sizes (experiment=tokenizer_mini / world_model_mini: AM-VAE
   latent 25x25, 64 channels, 256 codes, base 32, 1 res block, no attention; world model D=64,
   2 scales x 1 block). Latency depends on the shapes, not on the weights.
@@ -79,7 +89,8 @@ def make_request(grid, history, rng) -> PlanRequest:
     xs, ys = rng.integers(0, grid[0], n), rng.integers(0, grid[1], n)
     occ[:, xs, ys, 1] = rng.integers(1, 17, n)
     disp = np.tile([[4.0, 0.1]], (history - 1, 1))
-    return PlanRequest(occ, disp, "straight")
+    yaws = np.linspace(-0.05 * (history - 1), 0.0, history)  # read by pose-warp models only
+    return PlanRequest(occ, disp, "straight", ego_yaws=yaws)
 
 
 def _models(tok_cfg: TokenizerConfig, **wm) -> tuple:
@@ -125,7 +136,7 @@ def _run_session(forecast: bool):
     def run(planner: Planner, req: PlanRequest, session: PlannerSession) -> dict:
         t0 = time.perf_counter()
         session.push(req.occupancy[-1])  # the new frame: one encode
-        res = session.plan(req.ego_displacements, req.command, forecast=forecast)
+        res = session.plan(req.ego_displacements, req.command, forecast, req.ego_yaws)
         return {**res.timings, "wall": 1e3 * (time.perf_counter() - t0)}
 
     return run
@@ -237,6 +248,93 @@ def _commit() -> str:
         return "unknown"
 
 
+OLD_MODES = ("today", "full", "traj")
+NEW_MODES = ("full", "traj", "full bf16", "pw full", "pw traj")
+#: This checkout with retain_freed_memory() and Planner(world_model_threads=1) (new+opt rows).
+OPT_MODES = ("full", "traj", "pw full", "pw traj")
+
+
+def _extract(ref: str, dest: Path) -> Path:
+    """The ``renderworld`` package of commit ``ref`` under ``dest`` (``git archive``)."""
+    repo = Path(__file__).resolve().parents[1]
+    archive = subprocess.run(
+        ["git", "archive", ref, "renderworld"], cwd=repo, capture_output=True, check=True
+    ).stdout
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+    return dest
+
+
+def _worker(tree: Path, case: str, threads: int, modes, opt: bool = False) -> subprocess.Popen:
+    script = Path(__file__).resolve().parent / "planner_worker.py"
+    extra = ["--retain-memory", "--world-model-threads", "1"] if opt else []
+    proc = subprocess.Popen(
+        [sys.executable, str(script), "--tree", str(tree), "--case", case,
+         "--threads", str(threads), "--modes", *modes, *extra],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    line = proc.stdout.readline().strip()
+    if line != "ready":
+        raise RuntimeError(f"planner worker ({tree}, {case}) did not start: {line!r}")
+    return proc
+
+
+def _round(proc: subprocess.Popen) -> dict:
+    import json
+
+    proc.stdin.write("go\n")
+    proc.stdin.flush()
+    return json.loads(proc.stdout.readline())
+
+
+def compare(ref: str, cases, threads_list, reps: dict) -> None:
+    """Commit ``ref``'s planner and this checkout's, each in a worker process, rounds
+    interleaved (one plan per mode and side per round; medians after one warm-up round)."""
+    repo = Path(__file__).resolve().parents[1]
+    header = (
+        f"{'grid':<18}{'thr':>4}  {'planner':<9}{'mode':<10}{'encode':>9}{'world':>9}"
+        f"{'decode':>9}{'wall':>10}{'plans/s':>9}{'x old':>7}"
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        old_tree = _extract(ref, Path(tmp))
+        for case in cases:
+            name = {"mini": "mini 50x50x4", "occ3d": "Occ3D 200x200x16"}[case]
+            print(f"# {name}: untrained models ({'mini' if case == 'mini' else 'paper'} sizes); "
+                  f"{reps[case]} rounds; old = {ref}, new = this checkout")  # fmt: skip
+            print(header)
+            for threads in threads_list:
+                sides = {
+                    "old": (_worker(old_tree, case, threads, OLD_MODES), OLD_MODES),
+                    "new": (_worker(repo, case, threads, NEW_MODES), NEW_MODES),
+                    "new+opt": (_worker(repo, case, threads, OPT_MODES, opt=True), OPT_MODES),
+                }
+                runs = {(side, m): [] for side, (_, modes) in sides.items() for m in modes}
+                try:
+                    for r in range(reps[case] + 1):
+                        for side, (proc, _) in sides.items():
+                            for mode, t in _round(proc).items():
+                                if r:  # round 0 warms up
+                                    runs[(side, mode)].append(t)
+                finally:
+                    for proc, _ in sides.values():
+                        proc.stdin.close()
+                        proc.wait()
+                med = {
+                    k: {s: statistics.median(t[s] for t in ts) for s in (*STAGES, "wall")}
+                    for k, ts in runs.items()
+                }
+                for (side, mode), m in med.items():
+                    base = med.get(("old", mode))
+                    ratio = f"{base['wall'] / m['wall']:>7.2f}" if base else f"{'-':>7}"
+                    print(
+                        f"{name:<18}{threads:>4}  {side:<9}{mode:<10}{m['encode']:>9.1f}"
+                        f"{m['world_model']:>9.1f}{m['decode']:>9.1f}{m['wall']:>10.1f}"
+                        f"{1e3 / m['wall']:>9.2f}{ratio}",
+                        flush=True,
+                    )
+                print(f"# load average after {name}, {threads} thread(s): "
+                      f"{os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu")
@@ -255,7 +353,28 @@ def main() -> None:
     ap.add_argument(
         "--profile-decoder", action="store_true", help="only profile the Occ3D decoder (CPU)"
     )
+    ap.add_argument(
+        "--baseline",
+        metavar="REF",
+        help="compare this checkout's planner (token and pose-warp world models) with commit "
+        "REF's in worker processes, rounds interleaved (planner_worker.py)",
+    )
     args = ap.parse_args()
+    if args.baseline:
+        now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+        print(
+            f"# Planner latency (ms, medians), batch 1, one new frame per plan\n# {now}, commit "
+            f"{_commit()}, device cpu: {_describe_machine('cpu')}, torch {torch.__version__}, "
+            f"load average at start {os.getloadavg()[0]:.1f}, "
+            f"OMP_WAIT_POLICY={os.environ['OMP_WAIT_POLICY']}"
+        )
+        cases = [
+            c for c, skip in (("mini", args.skip_mini), ("occ3d", args.skip_occ3d)) if not skip
+        ]
+        compare(args.baseline, cases, args.threads, {"mini": args.reps_mini,
+                                                     "occ3d": args.reps_occ3d})  # fmt: skip
+        print(f"# load average at end {os.getloadavg()[0]:.1f}")
+        return
     if args.profile_decoder:
         print(f"# load average {os.getloadavg()[0]:.1f}, commit {_commit()}")
         profile_decoder(occ3d_models(), args.threads[0])

@@ -47,7 +47,11 @@ def main_job_report(cfg: Any, out: Path, results: list, seconds: float) -> Path:
     sections += _tokenizer_section(out)
     sections += _img2occ_section(out)
     sections += _world_model_section(out)
+<<<<<<< HEAD
     sections += _interaction_section(out)
+=======
+    sections += _planner_section(out)
+>>>>>>> planner
     sections.append(("3-D recording (Rerun)", report_section(out)))
     figures = _pictures(cfg, out)
     if figures:
@@ -128,6 +132,7 @@ def _world_model_section(out: Path) -> list[tuple[str, str]]:
     return [("Forecasting and planning (mini_val; 3D-Occ and Camera settings)", table.read_text())]
 
 
+<<<<<<< HEAD
 def _interaction_section(out: Path) -> list[tuple[str, str]]:
     from renderworld.training.stages.world_model_report import REPORT_BASENAME
 
@@ -141,6 +146,23 @@ def _interaction_section(out: Path) -> list[tuple[str, str]]:
         "someone, a trajectory that ignores the scene collides.\n\n"
     )
     return [("Interactions (held-out split; same checkpoints)", intro + table.read_text())]
+=======
+def _planner_section(out: Path) -> list[tuple[str, str]]:
+    from renderworld.pipeline.main_job import PLANNER_BUNDLE
+
+    bundle = out / "planner" / PLANNER_BUNDLE
+    if not bundle.is_file():
+        return []
+    text = (
+        f"`{bundle}`: the world model of this run with its tokenizer. Plan with it:\n\n"
+        "```python\nfrom renderworld.planning import PlanRequest, load_planner\n\n"
+        f'planner = load_planner("{bundle}")\n'
+        "result = planner.plan(PlanRequest(occupancy, ego_displacements, command, "
+        "ego_yaws=yaws))\n```\n\n"
+        "Frames, units and streaming (`PlannerSession`): `docs/planner.md`."
+    )
+    return [("Planner", text)]
+>>>>>>> planner
 
 
 #: Each training run of the main job and the validation metric its curves show (its monitor).

@@ -22,7 +22,10 @@ from renderworld.pipeline.scenario_steps import (
     scenario_steps,
 )
 
-__all__ = ["EXPERIMENTS", "EXPORT_DEVICE", "main_job_steps", "run_main_job"]
+__all__ = ["EXPERIMENTS", "EXPORT_DEVICE", "PLANNER_BUNDLE", "main_job_steps", "run_main_job"]
+
+#: File name of the main job's planner bundle, in ``<out>/planner/``.
+PLANNER_BUNDLE = "planner.pt"
 
 #: The experiment each training step runs, per family (``configs/pipeline.yaml`` experiments):
 #: ``mini`` the demo's (simulated mini fixture, CPU), ``paper`` the paper's scale (real
@@ -270,6 +273,20 @@ def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step
         (*p.common, f"stage.tokenizer_ckpt={cam_tok}", f"stage.occ_root={pseudo}"), p.out,
         ("tokenizer_camera", "pseudo_labels"),
         (*wm_inputs, *p.configs("world_model", cam_exp)), p.extra, evaluate=False,
+    )  # fmt: skip
+    # The planner the demo trained: tokenizer + world model in one bundle (load_planner).
+    steps.append(
+        Step(
+            "planner",
+            "bundle the world model and its tokenizer as a planner (renderworld.planning)",
+            (sys.executable, "tools/export_planner.py",
+             f"world_model_ckpt={p.ckpt('world_model')}", f"tokenizer_ckpt={p.ckpt('tokenizer')}",
+             f"out={p.out / 'planner' / PLANNER_BUNDLE}"),
+            p.out / "planner",
+            depends_on=("tokenizer", "world_model"),
+            inputs=(*p.code("planning"), p.repo / "renderworld" / "training" / "stages"
+                    / "world_model_bundle.py"),
+        )
     )  # fmt: skip
     # One evaluation, one table: both settings, model and baselines.
     evaluate = (

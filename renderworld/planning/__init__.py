@@ -1,7 +1,9 @@
 """Planner API: ``load_planner(path).plan(PlanRequest(...)) -> PlanResult``.
 
-Streaming (one encode per new frame): ``PlannerSession(planner)``. Light to import: torch and
-numpy only (no Hydra, no Open3D). Frames and units are in :mod:`renderworld.planning.request`.
+Streaming (one encode per new frame): ``PlannerSession(planner)``; in a planning loop,
+``retain_freed_memory()`` once per process (glibc) saves the allocator's page faults. Light to
+import: torch and numpy only (no Hydra, no Open3D). Frames and units are in
+:mod:`renderworld.planning.request`.
 """
 
 from renderworld.planning.api import Planner
@@ -13,6 +15,7 @@ from renderworld.planning.bundle import (
     registered_tokenizers,
     save_planner_bundle,
 )
+from renderworld.planning.memory import retain_freed_memory
 from renderworld.planning.request import MAX_STEP_DISPLACEMENT_M, PlanRequest, PlanResult
 from renderworld.planning.session import PlannerSession
 
@@ -27,5 +30,6 @@ __all__ = [
     "load_planner",
     "register_tokenizer",
     "registered_tokenizers",
+    "retain_freed_memory",
     "save_planner_bundle",
 ]

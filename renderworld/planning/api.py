@@ -1,5 +1,13 @@
 """The planner API: occupancy history + current command -> 3 s trajectory and forecast.
 
+Two kinds of world model plan behind the same API: the token world model
+(:class:`renderworld.world.WorldModel`, ``stage.forecaster=tokens``: an autoregressive rollout
+of scene tokens and ego displacements) and the pose-warp world model
+(:class:`renderworld.world.pose.PoseWarpWorldModel`, ``stage.forecaster=pose_warp``, the main
+job's: predicted future poses, the current frame warped along them, the token network's fill;
+see :mod:`renderworld.planning.pose_warp`). The pose-warp model also reads the history frames'
+yaws (``PlanRequest.ego_yaws``).
+
 Frames and units: :mod:`renderworld.planning.request`. The planner uses the last
 ``history_frames`` (5) frames when more are given, and holds the current command fixed through
 the rollout. For a car's loop (one new frame at a time) use
@@ -20,6 +28,11 @@ Execution options (:class:`Planner`):
   ``"reduce-overhead"`` = CUDA graphs on a GPU, ``"max-autotune"``); if compiling fails the
   planner warns once and runs eagerly.
 * ``pin_memory``: copy the forecast into pinned host memory (CUDA only; default on for CUDA).
+* ``world_model_threads``: torch intra-op threads while the world model runs (None: the
+  process's setting). The mini world model's ops are small (625 cells x 64 channels): on a CPU
+  one thread runs its rollout faster than two, which wait on each other at every op, while the
+  encoder and decoder convolutions still use every thread. The setting is restored after each
+  call (it is process-wide: do not plan from several Python threads with it set).
 """
 
 from __future__ import annotations
@@ -31,12 +44,19 @@ import warnings
 import numpy as np
 import torch
 
-from renderworld.constants import COMMANDS
+from renderworld.constants import COMMANDS, GridSpec
+from renderworld.planning.pose_warp import (
+    default_grid,
+    forecast_from_poses,
+    history_poses,
+    tokenizer_grid_shape,
+)
 from renderworld.planning.request import PlanRequest, PlanResult, as_numpy
 from renderworld.tokenizer import SceneTokenizer
 from renderworld.tokenizer.inference import FastSceneCodec
 from renderworld.tokenizer.tokens import Tokens
 from renderworld.world.model import WorldModel
+from renderworld.world.pose import PoseWarpWorldModel
 
 __all__ = ["PlanRequest", "PlanResult", "Planner"]
 
@@ -51,37 +71,55 @@ class Planner:
         tokenizer: object with ``encode(occ [B, X, Y, Z] uint8) -> Tokens`` and
             ``decode(Tokens) -> [B, X, Y, Z] uint8`` (an ``nn.Module`` is moved to ``device``
             and set to eval mode).
-        world_model: :class:`renderworld.world.WorldModel` whose codebooks and token grid match
-            the tokenizer's.
+        world_model: :class:`renderworld.world.WorldModel` or
+            :class:`renderworld.world.pose.PoseWarpWorldModel` whose codebooks and token grid
+            match the tokenizer's.
         device: where both run.
+        grid: the occupancy grid (x/y range and voxel size), read by the pose-warp model's warps
+            (None: the Occ3D range on the tokenizer's ``grid_shape``, as every named grid).
         fast: use the fast inference codec for a :class:`SceneTokenizer` (see module doc).
         precision: ``"float32"`` or ``"bfloat16"`` (the decoder's autocast dtype).
         compile: None or a ``torch.compile`` mode for the decoder.
         pin_memory: pinned host memory for the forecast copy (None: on for CUDA devices).
+        world_model_threads: intra-op threads of the world model's part (None: unchanged).
     """
 
     def __init__(
         self,
         tokenizer,
-        world_model: WorldModel,
+        world_model: WorldModel | PoseWarpWorldModel,
         device: str | torch.device = "cpu",
         *,
+        grid: GridSpec | None = None,
         fast: bool = True,
         precision: str = "float32",
         compile: str | None = None,
         pin_memory: bool | None = None,
+        world_model_threads: int | None = None,
     ):
         for name in ("encode", "decode"):
             if not callable(getattr(tokenizer, name, None)):
                 raise TypeError(f"tokenizer: expected an object with a callable .{name}()")
-        if not isinstance(world_model, WorldModel):
-            raise TypeError(f"world_model: expected WorldModel, got {type(world_model).__name__}")
+        if not isinstance(world_model, (WorldModel, PoseWarpWorldModel)):
+            raise TypeError(
+                "world_model: expected WorldModel or PoseWarpWorldModel, got "
+                f"{type(world_model).__name__}"
+            )
+        if grid is not None and not isinstance(grid, GridSpec):
+            raise TypeError(f"grid: expected a GridSpec or None, got {type(grid).__name__}")
         if not isinstance(fast, bool):
             raise TypeError(f"fast: expected a bool, got {fast!r}")
         if precision not in PRECISIONS:
             raise ValueError(f"precision: expected one of {tuple(PRECISIONS)}, got {precision!r}")
         if compile not in COMPILE_MODES:
             raise ValueError(f"compile: expected one of {COMPILE_MODES}, got {compile!r}")
+        if world_model_threads is not None and (
+            type(world_model_threads) is not int or world_model_threads < 1
+        ):
+            raise ValueError(
+                f"world_model_threads: expected None or an int >= 1, got {world_model_threads!r}"
+            )
+        self.world_model_threads = world_model_threads
         self.device = torch.device(device)
         if pin_memory is None:
             pin_memory = self.device.type == "cuda"
@@ -92,6 +130,20 @@ class Planner:
         if isinstance(tokenizer, torch.nn.Module):
             self.tokenizer = tokenizer.to(self.device).eval()
         self.config = world_model.config
+        self.kind = "pose_warp" if isinstance(world_model, PoseWarpWorldModel) else "tokens"
+        shape = tokenizer_grid_shape(tokenizer)
+        if grid is None and shape is not None:
+            grid = default_grid(shape)
+        if grid is None and self.kind == "pose_warp":
+            raise ValueError(
+                "grid: a pose-warp world model needs the occupancy grid; the tokenizer names no "
+                "grid_shape, pass grid="
+            )
+        if grid is not None and shape is not None and tuple(grid.shape) != shape:
+            raise ValueError(
+                f"grid: expected the tokenizer's grid_shape {shape}, got {tuple(grid.shape)}"
+            )
+        self.grid = grid
         self.fast, self.precision, self.compile = fast, precision, compile
         self.pin_memory = bool(pin_memory)
         use_codec = fast and isinstance(tokenizer, SceneTokenizer)
@@ -115,6 +167,20 @@ class Planner:
             return contextlib.nullcontext()
         return torch.autocast(self.device.type, dtype=dtype)
 
+    @contextlib.contextmanager
+    def _world_model_threads(self):
+        """``world_model_threads`` intra-op threads inside, the previous count restored after."""
+        before = torch.get_num_threads()
+        n = self.world_model_threads
+        if n is None or n == before:
+            yield
+            return
+        torch.set_num_threads(n)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(before)
+
     def encode(self, occ: torch.Tensor) -> Tokens:
         """Occupancy [N, X, Y, Z] uint8 (on ``device``) -> checked :class:`Tokens` [N, G, h, w]."""
         tokens = self._encode_fn(occ)
@@ -134,6 +200,49 @@ class Planner:
                 )
                 self._compiled = None
         return self._decode_fn(tokens)
+
+    def _decode_codes(self, indices: torch.Tensor) -> torch.Tensor:
+        """Codes [N, G, h, w] -> occupancy [N, X, Y, Z] (decoder autocast and compile)."""
+        tokens = Tokens(indices, tuple(self.config.codebook_sizes), self._names)
+        with self._autocast():
+            return self._decode(tokens)
+
+    def _plan_frames(
+        self,
+        occ: torch.Tensor,
+        displacements: np.ndarray,
+        yaws: np.ndarray,
+        commands: list[str],
+        forecast: bool = True,
+    ) -> list[PlanResult]:
+        """Plan with the pose-warp model from raw history frames (shared by :meth:`plan_batch`
+        and :class:`renderworld.planning.PlannerSession`; inputs are assumed validated).
+
+        Args:
+            occ: [B, H, X, Y, Z] uint8 on ``device``, H = ``history_frames``.
+            displacements: [B, H-1, 2] float metres, current ego frame.
+            yaws: [B, H] radians, current ego frame.
+            commands: B commands.
+            forecast: also forecast the occupancy (False: the pose head only).
+        """
+        b = occ.shape[0]
+        s = self.config.future_frames
+        cmd = torch.tensor([COMMANDS.index(c) for c in commands], device=self.device)
+        ms = {"encode": 0.0, "world_model": 0.0, "decode": 0.0}
+        with torch.inference_mode():
+            t0 = self._sync()
+            hist = history_poses(displacements, yaws).to(self.device)
+            with self._world_model_threads():
+                poses, _ = self.world_model.predict_poses(hist, cmd, occ[:, -1])
+            traj = poses[..., :2].float().cpu().numpy()
+            ms["world_model"] = 1e3 * (self._sync() - t0)
+            fc = None
+            if forecast:
+                dec, more = forecast_from_poses(self, occ, hist, poses, cmd)
+                fc = self._to_host(dec.flatten(0, 1), b * s).reshape(b, s, *dec.shape[2:])
+                ms = {k: ms[k] + more[k] for k in ms}
+        timings = {**ms, "total": 1e3 * (self._sync() - t0), "batch_size": b}
+        return [PlanResult(traj[i], None if fc is None else fc[i], dict(timings)) for i in range(b)]
 
     def _plan_tokens(
         self,
@@ -160,18 +269,15 @@ class Planner:
         disp = torch.from_numpy(np.asarray(displacements, dtype=np.float32)).to(self.device)
         with torch.inference_mode():
             t1 = self._sync()
-            out = self.world_model.rollout(history_tokens, disp, cmd, steps=s)
+            with self._world_model_threads():
+                out = self.world_model.rollout(
+                    history_tokens, disp, cmd, steps=s, trajectory_only=not forecast
+                )
             traj = out.trajectory.float().cpu().numpy()
             t2 = self._sync()
             occ = None
             if forecast:
-                fut = Tokens(
-                    out.tokens.reshape(b * s, *out.tokens.shape[2:]),
-                    tuple(self.config.codebook_sizes),
-                    self._names,
-                )
-                with self._autocast():
-                    dec = self._decode(fut)
+                dec = self._decode_codes(out.tokens.reshape(b * s, *out.tokens.shape[2:]))
                 occ = self._to_host(dec, b * s)
             t3 = self._sync()
         timings = {
@@ -214,11 +320,13 @@ class Planner:
         Args:
             requests: :class:`PlanRequest` objects.
             forecast: also decode the occupancy forecast; False gives a trajectory-only plan
-                (no occupancy decode, ``occupancy_forecast`` None, the same trajectory).
+                (no occupancy decode, ``occupancy_forecast`` None, the same trajectory; with a
+                pose-warp model: the pose head only, no encode either).
 
         Raises:
             TypeError: a request is not a :class:`PlanRequest`.
-            ValueError: empty list, grids that differ, or tokens that do not fit the model.
+            ValueError: empty list, grids that differ, tokens that do not fit the model, or
+                (pose-warp model) a request without ``ego_yaws`` or off the planner's grid.
         """
         reqs = list(requests)
         if not reqs:
@@ -245,8 +353,24 @@ class Planner:
         occ = np.stack([as_numpy(r.occupancy, "occupancy")[-h:] for r in reqs])
         disp = np.stack(
             [as_numpy(r.ego_displacements, "ego_displacements")[-(h - 1) :] for r in reqs]
-        ).astype(np.float32)
+        )
         b = len(reqs)
+        if self.kind == "pose_warp":
+            if grid != tuple(self.grid.shape):
+                raise ValueError(
+                    f"requests[0].occupancy: expected the planner's grid {tuple(self.grid.shape)}, "
+                    f"got {grid}"
+                )
+            for i, r in enumerate(reqs):
+                if r.ego_yaws is None:
+                    raise ValueError(
+                        f"requests[{i}].ego_yaws: the pose-warp world model needs the yaw of each "
+                        "history frame ([T] radians, current ego frame), got None"
+                    )
+            yaws = np.stack([as_numpy(r.ego_yaws, "ego_yaws")[-h:] for r in reqs])
+            frames = torch.from_numpy(occ).to(self.device)
+            return self._plan_frames(frames, disp, yaws, [r.command for r in reqs], forecast)
+        disp = disp.astype(np.float32)
         with torch.inference_mode():
             t0 = self._sync()
             tokens = self.encode(torch.from_numpy(occ).to(self.device).reshape(b * h, *grid))

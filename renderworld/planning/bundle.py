@@ -1,22 +1,30 @@
 """Planner bundles: one file holding the tokenizer and the world model, loadable safely.
 
-Format (``schema_version`` 1), a plain dict saved with ``torch.save`` and read with
+Format (``schema_version`` 2), a plain dict saved with ``torch.save`` and read with
 ``torch.load(weights_only=True)`` (no pickled code)::
 
     {
-      "schema_version": 1,
+      "schema_version": 2,
       "stage": "planner_bundle",
       "tokenizer":   {"kind": str, "config": dict, "state_dict": {name: Tensor}},
-      "world_model": {"config": dict (WorldModelConfig.to_dict()), "state_dict": {...}},
+      "world_model": {"kind": "tokens" | "pose_warp",
+                      "config": dict (WorldModelConfig.to_dict()), "state_dict": {...},
+                      "options": {} (tokens) | {"anchors": str, "grid": {"name": str,
+                                  "range_min": [3], "range_max": [3], "shape": [3]}}},
     }
+
+``kind`` ``"tokens"`` is :class:`renderworld.world.WorldModel`, ``"pose_warp"``
+:class:`renderworld.world.pose.PoseWarpWorldModel` (its pose head's anchors and the occupancy
+grid its warps use are the options). Bundles of ``schema_version`` 1 (token world models only,
+no ``kind`` / ``options``) still load.
 
 The tokenizer is rebuilt through a registry (``register_tokenizer``), never by importing a
 class named in the file. Writes are atomic (temp file in the same folder, fsync, rename);
 loads are strict (unknown/missing keys and wrong schema raise).
 
-The training infrastructure's checkpoints (``"model"``, ``"config"`` YAML, ``"stage"``,
-``"schema_version"``) come later; a converter from two such checkpoints to a bundle is then a
-few lines around :func:`save_planner_bundle`.
+Bundles of ``world_model`` runs (either forecaster):
+:func:`renderworld.training.stages.world_model_bundle.export_planner_bundle`
+(``tools/export_planner.py``; the main job writes ``<out>/planner/planner.pt``).
 """
 
 from __future__ import annotations
@@ -30,10 +38,13 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from renderworld.constants import GridSpec
 from renderworld.planning.api import Planner
+from renderworld.planning.pose_warp import default_grid, tokenizer_grid_shape
 from renderworld.tokenizer import SceneTokenizer, build_tokenizer
 from renderworld.world.config import WorldModelConfig
 from renderworld.world.model import WorldModel
+from renderworld.world.pose import ANCHORS, PoseWarpWorldModel
 
 __all__ = [
     "BUNDLE_SCHEMA_VERSION",
@@ -44,7 +55,11 @@ __all__ = [
     "save_planner_bundle",
 ]
 
-BUNDLE_SCHEMA_VERSION = 1
+BUNDLE_SCHEMA_VERSION = 2
+#: Schema versions :func:`load_planner` reads (1: token world models only).
+READABLE_SCHEMA_VERSIONS = (1, 2)
+#: World-model kinds of a bundle (``stage.forecaster`` of the run).
+WORLD_MODEL_KINDS = ("tokens", "pose_warp")
 BUNDLE_STAGE = "planner_bundle"
 
 
@@ -127,21 +142,65 @@ def _kind_of(tokenizer) -> str:
     )
 
 
+def _grid_dict(grid: GridSpec) -> dict:
+    return {"name": grid.name, "range_min": [float(v) for v in grid.range_min],
+            "range_max": [float(v) for v in grid.range_max],
+            "shape": [int(v) for v in grid.shape]}  # fmt: skip
+
+
+def _grid_of(d, where: str) -> GridSpec:
+    _require_keys(d, {"name", "range_min", "range_max", "shape"}, where)
+    try:
+        lo, hi = tuple(float(v) for v in d["range_min"]), tuple(float(v) for v in d["range_max"])
+        shape = tuple(int(v) for v in d["shape"])
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{where}: expected numbers, got {d!r}") from err
+    if len(lo) != 3 or len(hi) != 3 or len(shape) != 3 or min(shape) < 1:
+        raise ValueError(f"{where}: expected 3 ranges and 3 positive sizes, got {d!r}")
+    if not all(a < b for a, b in zip(lo, hi)):
+        raise ValueError(f"{where}: expected range_min < range_max, got {lo} and {hi}")
+    return GridSpec(str(d["name"]), lo, hi, shape)
+
+
+def _world_model_options(world_model, tokenizer, grid: GridSpec | None) -> tuple[str, dict]:
+    if isinstance(world_model, PoseWarpWorldModel):
+        if grid is None:
+            shape = tokenizer_grid_shape(tokenizer)
+            if shape is None:
+                raise ValueError(
+                    "grid: a pose-warp world model needs the occupancy grid; the tokenizer names "
+                    "no grid_shape, pass grid="
+                )
+            grid = default_grid(shape)
+        if not isinstance(grid, GridSpec):
+            raise TypeError(f"grid: expected a GridSpec or None, got {type(grid).__name__}")
+        return "pose_warp", {"anchors": world_model.pose.anchors, "grid": _grid_dict(grid)}
+    if isinstance(world_model, WorldModel):
+        return "tokens", {}
+    raise TypeError(
+        f"world_model: expected WorldModel or PoseWarpWorldModel, got {type(world_model).__name__}"
+    )
+
+
 def save_planner_bundle(
-    path: str | os.PathLike, tokenizer: nn.Module, world_model: WorldModel
+    path: str | os.PathLike,
+    tokenizer: nn.Module,
+    world_model: WorldModel | PoseWarpWorldModel,
+    grid: GridSpec | None = None,
 ) -> Path:
     """Write a planner bundle atomically.
 
     Args:
         path: destination file (its folder must exist).
         tokenizer: a registered tokenizer module.
-        world_model: the world model.
+        world_model: the token world model or the pose-warp world model.
+        grid: the occupancy grid of a pose-warp model's warps (None: the Occ3D range on the
+            tokenizer's ``grid_shape``, as every named grid); not stored for a token model.
 
     Returns:
         The path written.
     """
-    if not isinstance(world_model, WorldModel):
-        raise TypeError(f"world_model: expected WorldModel, got {type(world_model).__name__}")
+    wm_kind, options = _world_model_options(world_model, tokenizer, grid)
     kind = _kind_of(tokenizer)
     path = Path(path)
     if not path.parent.is_dir():
@@ -155,8 +214,10 @@ def save_planner_bundle(
             "state_dict": {k: v.detach().cpu() for k, v in tokenizer.state_dict().items()},
         },
         "world_model": {
+            "kind": wm_kind,
             "config": world_model.config.to_dict(),
             "state_dict": {k: v.detach().cpu() for k, v in world_model.state_dict().items()},
+            "options": options,
         },
     }
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -230,14 +291,37 @@ def load_planner(
     _require_keys(
         data, {"schema_version", "stage", "tokenizer", "world_model"}, f"ckpt_path {path}"
     )
-    if data["schema_version"] != BUNDLE_SCHEMA_VERSION:
+    version = data["schema_version"]
+    if type(version) is not int or version not in READABLE_SCHEMA_VERSIONS:
         raise ValueError(
-            f"ckpt_path {path}: expected schema_version {BUNDLE_SCHEMA_VERSION}, "
-            f"got {data['schema_version']!r}"
+            f"ckpt_path {path}: expected schema_version 1 or {BUNDLE_SCHEMA_VERSION}, "
+            f"got {version!r}"
         )
     tok, wm = data["tokenizer"], data["world_model"]
     _require_keys(tok, {"kind", "config", "state_dict"}, f"ckpt_path {path}: tokenizer")
-    _require_keys(wm, {"config", "state_dict"}, f"ckpt_path {path}: world_model")
+    if version == 1:
+        _require_keys(wm, {"config", "state_dict"}, f"ckpt_path {path}: world_model")
+        wm = {**wm, "kind": "tokens", "options": {}}
+    else:
+        _require_keys(
+            wm, {"kind", "config", "state_dict", "options"}, f"ckpt_path {path}: world_model"
+        )
+    wm_kind, options, grid = wm["kind"], wm["options"], None
+    if wm_kind not in WORLD_MODEL_KINDS:
+        raise ValueError(
+            f"ckpt_path {path}: world_model kind: expected one of {WORLD_MODEL_KINDS}, "
+            f"got {wm_kind!r}"
+        )
+    where = f"ckpt_path {path}: world_model options"
+    if wm_kind == "pose_warp":
+        _require_keys(options, {"anchors", "grid"}, where)
+        if options["anchors"] not in ANCHORS:
+            raise ValueError(
+                f"{where}: anchors: expected one of {ANCHORS}, got {options['anchors']!r}"
+            )
+        grid = _grid_of(options["grid"], f"{where}: grid")
+    else:
+        _require_keys(options, set(), where)
     _register_builtin()
     if not isinstance(tok["kind"], str) or tok["kind"] not in _REGISTRY:
         raise ValueError(
@@ -260,7 +344,11 @@ def load_planner(
             f"ckpt_path {path}: tokenizer config refused: {type(err).__name__}: {err}"
         ) from err
     try:
-        world_model = WorldModel(WorldModelConfig.from_dict(wm["config"]))
+        config = WorldModelConfig.from_dict(wm["config"])
+        if wm_kind == "pose_warp":
+            world_model = PoseWarpWorldModel(config, anchors=options["anchors"])
+        else:
+            world_model = WorldModel(config)
     except (TypeError, ValueError) as err:
         raise ValueError(f"ckpt_path {path}: world_model config refused: {err}") from err
     try:
@@ -268,4 +356,12 @@ def load_planner(
         world_model.load_state_dict(wm["state_dict"], strict=True)
     except RuntimeError as err:
         raise ValueError(f"ckpt_path {path}: state dict does not match its config: {err}") from err
+    if grid is not None:
+        shape = tokenizer_grid_shape(tokenizer)
+        if shape is not None and tuple(shape) != tuple(grid.shape):
+            raise ValueError(
+                f"ckpt_path {path}: world_model options: grid shape {tuple(grid.shape)} does "
+                f"not match the tokenizer's grid_shape {tuple(shape)}"
+            )
+        planner_options = {"grid": grid, **planner_options}
     return Planner(tokenizer, world_model, device=device, **planner_options)

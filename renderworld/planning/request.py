@@ -7,6 +7,11 @@ Conventions (DESIGN.md §3, VAD per-step offsets, FACTS.md):
 * ``PlanRequest.ego_displacements[i]`` = ``p[i + 1] - p[i]`` in metres, where ``p[k]`` is the
   ego origin (rear axle) of history frame k expressed in the **current** ego frame
   (x forward, y left). E.g. driving straight ahead at 10 m/s gives ``[5, 0]`` per row.
+* ``PlanRequest.ego_yaws[i]`` = yaw (radians, counter-clockwise) of history frame i's ego frame in
+  the **current** ego frame, so the last one is 0. The token world model does not read it; the
+  pose-warp world model needs it (it rotates the history into the current frame and
+  extrapolates the turn rate). :func:`renderworld.world.ego.frame_poses_from_poses` gives
+  ``(x, y, yaw)`` rows whose differences are the displacements and whose last column is this.
 * ``PlanResult.trajectory[k]`` = predicted ``p[t + k + 1]``: positions of the future frames at
   +0.5 ... +3.0 s in the current ego frame (the cumulative sum of the predicted per-step
   displacements, the same convention), metres.
@@ -28,12 +33,16 @@ __all__ = [
     "check_command",
     "check_displacements",
     "check_occupancy",
+    "check_yaws",
 ]
 
 #: Largest accepted length (metres) of one history step ``d[i]`` (one keyframe interval,
 #: 0.5 s): 50 m per 0.5 s is 100 m/s = 360 km/h, beyond any road vehicle; a longer step is a
 #: unit or frame error (e.g. global coordinates or millimetres), not driving.
 MAX_STEP_DISPLACEMENT_M: float = 50.0
+
+#: Slack (radians) on the yaw checks: float32 round-off of poses computed elsewhere.
+YAW_TOLERANCE: float = 1e-6
 
 
 def as_numpy(x, name: str) -> np.ndarray:
@@ -92,6 +101,31 @@ def check_displacements(disp, rows: int, name: str = "ego_displacements") -> np.
     return disp
 
 
+def check_yaws(yaws, rows: int, name: str = "ego_yaws") -> np.ndarray:
+    """Validate history yaws [rows] radians in the current ego frame (finite, in [-pi, pi],
+    the last one 0: the current frame's own yaw).
+
+    Returns:
+        The array (numpy view, not copied).
+    """
+    yaws = as_numpy(yaws, name)
+    if not np.issubdtype(yaws.dtype, np.floating):
+        raise ValueError(f"{name}: expected a float dtype, got {yaws.dtype}")
+    if yaws.shape != (rows,):
+        raise ValueError(f"{name}: expected shape [T] = [{rows}], got {yaws.shape}")
+    if not np.isfinite(yaws).all():
+        raise ValueError(f"{name}: expected finite values, got NaN or inf")
+    worst = float(np.abs(yaws).max())
+    if worst > np.pi + YAW_TOLERANCE:
+        raise ValueError(f"{name}: expected radians in [-pi, pi], got |yaw| = {worst:.6g}")
+    if abs(float(yaws[-1])) > YAW_TOLERANCE:
+        raise ValueError(
+            f"{name}: expected 0 for the current frame (last row; yaws are in the current ego "
+            f"frame), got {float(yaws[-1]):.6g}"
+        )
+    return yaws
+
+
 def check_command(command) -> str:
     """Validate a driving command (one of ``COMMANDS``)."""
     if not isinstance(command, str) or command not in COMMANDS:
@@ -108,16 +142,21 @@ class PlanRequest:
         ego_displacements: [T-1, 2] float metres, current ego frame; each step at most
             :data:`MAX_STEP_DISPLACEMENT_M` = 50 m long (360 km/h over 0.5 s), finite.
         command: ``"left"``, ``"right"`` or ``"straight"`` (the current command).
+        ego_yaws: None, or [T] float radians, yaw of each history frame in the current ego
+            frame (last 0); needed by pose-warp world models, ignored by token world models.
     """
 
     occupancy: np.ndarray
     ego_displacements: np.ndarray
     command: str
+    ego_yaws: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         occ = check_occupancy(self.occupancy)
         check_displacements(self.ego_displacements, occ.shape[0] - 1)
         check_command(self.command)
+        if self.ego_yaws is not None:
+            check_yaws(self.ego_yaws, occ.shape[0])
 
 
 @dataclass(frozen=True)

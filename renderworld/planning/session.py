@@ -14,6 +14,12 @@ The tokens of a frame do not depend on the other frames (the tokenizer encodes e
 itself), so :meth:`PlannerSession.plan` equals :meth:`Planner.plan` on the same last five
 frames. The displacements are passed with every plan because they are expressed in the
 **current** ego frame, which changes with every frame (only the occupancy is reusable).
+
+With a pose-warp world model (``planner.kind == "pose_warp"``) the session keeps the raw frames
+instead (``push`` encodes nothing): that model encodes the history *brought into the current
+frame*, which changes with every frame, so there is no per-frame encode to reuse; ``plan`` then
+also takes the history yaws (``ego_yaws``, current ego frame) and runs exactly
+:meth:`Planner.plan`'s steps on the kept frames.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from renderworld.planning.request import (
     check_command,
     check_displacements,
     check_occupancy,
+    check_yaws,
 )
 
 __all__ = ["PlannerSession"]
@@ -61,6 +68,7 @@ class PlannerSession:
         """Forget the history (e.g. after a gap in the stream)."""
         self._tokens.clear()
         self._grid = None
+        self._last_encode_ms = 0.0
         self.frames_seen = 0
 
     def push(self, occupancy) -> float:
@@ -84,14 +92,24 @@ class PlannerSession:
         with torch.inference_mode():
             t0 = p._sync()
             frame = torch.from_numpy(np.array(occ, copy=True)).to(p.device)[None]
-            tokens = p.encode(frame)
-            self._last_encode_ms = 1e3 * (p._sync() - t0)
-        self._tokens.append(tokens.indices[0])
+            if p.kind == "pose_warp":  # raw frames: the plan aligns and encodes them
+                if occ.shape != tuple(p.grid.shape):
+                    raise ValueError(
+                        f"occupancy: expected the planner's grid {tuple(p.grid.shape)}, "
+                        f"got {occ.shape}"
+                    )
+                self._tokens.append(frame[0])
+            else:
+                self._tokens.append(p.encode(frame).indices[0])
+            ms = 1e3 * (p._sync() - t0)
+        self._last_encode_ms += ms
         self._grid = tuple(occ.shape)
         self.frames_seen += 1
-        return self._last_encode_ms
+        return ms
 
-    def plan(self, ego_displacements, command: str, forecast: bool = True) -> PlanResult:
+    def plan(
+        self, ego_displacements, command: str, forecast: bool = True, ego_yaws=None
+    ) -> PlanResult:
         """Plan from the last ``history_frames`` pushed frames.
 
         Args:
@@ -100,6 +118,9 @@ class PlannerSession:
                 ego frame; each step at most 50 m (see :class:`PlanRequest`).
             command: ``"left"``, ``"right"`` or ``"straight"``.
             forecast: also decode the occupancy forecast (False: trajectory only).
+            ego_yaws: [T] float radians (T >= ``history_frames``, the last rows are used), the
+                yaw of each history frame in the current ego frame (last 0); required by a
+                pose-warp world model, ignored by a token world model.
 
         Returns:
             :class:`PlanResult`; ``timings["encode"]`` is the encode time of the pushes since
@@ -119,15 +140,29 @@ class PlannerSession:
         check_command(command)
         if not isinstance(forecast, bool):
             raise TypeError(f"forecast: expected a bool, got {forecast!r}")
+        if self.planner.kind == "pose_warp":
+            if ego_yaws is None:
+                raise ValueError(
+                    "ego_yaws: the pose-warp world model needs the yaw of each history frame "
+                    "([T] radians, current ego frame), got None"
+                )
+            yaws = as_numpy(ego_yaws, "ego_yaws")
+            n = yaws.shape[0] if yaws.ndim == 1 and yaws.shape[0] >= h else h
+            yaws = check_yaws(yaws, n)[-h:]
+            frames = torch.stack(list(self._tokens))[None]  # [1, H, X, Y, Z]
+            self._last_encode_ms = 0.0
+            return self.planner._plan_frames(frames, disp[None], yaws[None], [command], forecast)[0]
         history = torch.stack(list(self._tokens))[None]  # [1, H, G, h, w]
         encode_ms, self._last_encode_ms = self._last_encode_ms, 0.0
         return self.planner._plan_tokens(
             history, disp.astype(np.float32)[None], [command], forecast, encode_ms
         )[0]
 
-    def step(self, occupancy, ego_displacements, command: str, forecast: bool = True):
+    def step(
+        self, occupancy, ego_displacements, command: str, forecast: bool = True, ego_yaws=None
+    ):
         """:meth:`push` the new frame, then :meth:`plan` if the history is full (else None)."""
         self.push(occupancy)
         if not self.ready:
             return None
-        return self.plan(ego_displacements, command, forecast)
+        return self.plan(ego_displacements, command, forecast, ego_yaws)

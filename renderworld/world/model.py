@@ -179,6 +179,9 @@ class WorldModel(nn.Module):
         command: torch.Tensor,
         cache: WorldModelCache | None = None,
         last_only: bool = False,
+        *,
+        with_logits: bool = True,
+        validate: bool = True,
     ) -> WorldModelOutput:
         """Teacher-forced next-frame prediction at every position of a window.
 
@@ -196,12 +199,18 @@ class WorldModel(nn.Module):
                 hold one position, [B, 1, K_g, h, w]); displacements still cover every
                 position. The up-path and the code heads feed nothing else, so this skips
                 work, not information (the rollout reads only the last position).
+            with_logits: False skips the up-path and the code heads altogether (``logits`` is
+                then empty): the displacements do not read them (a trajectory-only rollout's
+                last step).
+            validate: False skips the input checks (the rollout checks its history once and
+                appends only its own argmax codes and predicted displacements).
 
         Returns:
             :class:`WorldModelOutput` with T (or T - F) predictions (index i predicts frame
             i+1 and d[i]).
         """
-        self._check_inputs(tokens, displacements, command)
+        if validate:
+            self._check_inputs(tokens, displacements, command)
         cfg = self.config
         b, t = tokens.shape[:2]
         start = 0
@@ -234,13 +243,14 @@ class WorldModel(nn.Module):
         ego = self.ego_block(ego, x, None if cache is None else cache.ego)
         if cache is not None:
             cache.frames = start + t
-        if last_only:  # the up-path and the heads feed only the logits
-            x, skips = x[:, -1:], [sk[:, -1:] for sk in skips]
-        for s in reversed(range(cfg.num_scales - 1)):
-            x = self.up[s](x, skips[s])
-
-        x = self.out_norm(x)
-        logits = [head(x).permute(0, 1, 4, 2, 3) for head in self.code_heads]
+        logits = []
+        if with_logits:
+            if last_only:  # the up-path and the heads feed only the logits
+                x, skips = x[:, -1:], [sk[:, -1:] for sk in skips]
+            for s in reversed(range(cfg.num_scales - 1)):
+                x = self.up[s](x, skips[s])
+            x = self.out_norm(x)
+            logits = [head(x).permute(0, 1, 4, 2, 3) for head in self.code_heads]
         # The trajectory head in float32: bf16 would round displacements of ~10 m by ~4 cm.
         with autocast_off():
             raw = self.ego_head(to_float32(ego)).view(b, t, len(COMMANDS), 2)
@@ -262,6 +272,7 @@ class WorldModel(nn.Module):
         command: torch.Tensor,
         steps: int | None = None,
         use_cache: bool = True,
+        trajectory_only: bool = False,
     ) -> RolloutOutput:
         """Autoregressive forecast; see :func:`renderworld.world.rollout.rollout`."""
         return rollout(
@@ -271,4 +282,5 @@ class WorldModel(nn.Module):
             command,
             steps=self.config.future_frames if steps is None else steps,
             use_cache=use_cache,
+            trajectory_only=trajectory_only,
         )

@@ -58,6 +58,11 @@ def test_report_has_one_world_model_table_pictures_and_no_empty_cell(tmp_path):
     assert "| Camera | CV-trajectory |" in text and "| 3D-Occ | model |" in text
     for name in ("bev_forecast.png", "trajectories.png"):
         assert f"(figures/{name})" in text and (out / "figures" / name).is_file()
+    assert "## Planner" not in text  # no bundle yet
+    (out / "planner").mkdir()
+    (out / "planner" / "planner.pt").write_bytes(b"made up")
+    text = _report(cfg, out, results, 5.0).read_text()
+    assert f'load_planner("{out / "planner" / "planner.pt"}")' in text
     # No empty cell; every dash / n/a is explained by a legend line.
     for line in text.splitlines():
         if line.startswith("|"):

@@ -128,6 +128,16 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
     assert cargs["stage.occ_root"] == str(out / "pseudo_labels")
     gt = dict(a.split("=", 1) for a in steps[names.index("world_model")].command[2:])
     assert gt["stage.tokenizer_ckpt"] == str(out / "tokenizer" / "checkpoints" / "best.pt")
+    # The planner of the world model the job trained (pose_warp in world_model_mini).
+    planner = steps[names.index("planner")]
+    assert planner.command[1] == "tools/export_planner.py"
+    assert set(planner.depends_on) == {"tokenizer", "world_model"}
+    pargs = dict(a.split("=", 1) for a in planner.command[2:])
+    assert pargs == {
+        "world_model_ckpt": str(out / "world_model" / "checkpoints" / "best.pt"),
+        "tokenizer_ckpt": str(out / "tokenizer" / "checkpoints" / "best.pt"),
+        "out": str(out / "planner" / "planner.pt"),
+    }
     # Scenario data: the library (occupancy only) feeds the 3D-Occ world model's training; the
     # held-out interaction split is scored with the same checkpoints.
     lib, inter = tmp_path / "sim_scenarios", tmp_path / "sim_interactions"

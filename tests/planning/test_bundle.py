@@ -61,7 +61,7 @@ def _tamper(tmp_path, edit):
     "edit, match",
     [
         (lambda d: d.update(stage="world_model"), "expected stage 'planner_bundle'"),
-        (lambda d: d.update(schema_version=99), "expected schema_version 1"),
+        (lambda d: d.update(schema_version=99), "expected schema_version 1 or 2"),
         (lambda d: d.update(extra=1), "expected keys"),
         (lambda d: d["tokenizer"].update(kind="nope"), "tokenizer kind 'nope' is not registered"),
         (

@@ -53,3 +53,28 @@ def test_rollout_equals_the_recomputing_reference():
     ref = model.rollout(tokens, disp, cmd, steps=6, use_cache=False)
     torch.testing.assert_close(fast.tokens, ref.tokens, rtol=0, atol=0)
     torch.testing.assert_close(fast.trajectory, ref.trajectory, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("use_cache", [True, False])
+def test_trajectory_only_rollout_skips_codes_not_displacements(use_cache):
+    model, tokens, disp, cmd = model_and_inputs(seed=3)
+    calls = []
+    model.code_heads[0].register_forward_hook(lambda *_: calls.append(1))
+    full = model.rollout(tokens, disp, cmd, steps=6, use_cache=use_cache)
+    n_full, calls[:] = len(calls), []
+    fast = model.rollout(tokens, disp, cmd, steps=6, use_cache=use_cache, trajectory_only=True)
+    assert fast.tokens is None and len(calls) == n_full - 1  # the last step's heads skipped
+    assert torch.equal(fast.displacements, full.displacements)
+    assert torch.equal(fast.trajectory, full.trajectory)
+    with torch.no_grad():
+        a = model(tokens, disp, cmd)
+        b = model(tokens, disp, cmd, with_logits=False)
+    assert b.logits == [] and torch.equal(a.displacement, b.displacement)
+
+
+def test_rollout_checks_its_history_once():
+    model, tokens, disp, cmd = model_and_inputs()
+    with pytest.raises(ValueError, match=r"tokens: codebook 0 codes must lie in \[0, 8\)"):
+        model.rollout(tokens + 100, disp, cmd, steps=2)
+    with pytest.raises(ValueError, match="displacements: expected finite values"):
+        model.rollout(tokens, disp * float("nan"), cmd, steps=2)

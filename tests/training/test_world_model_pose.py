@@ -99,10 +99,91 @@ def test_trains_evaluates_and_reloads_its_kind(wm_overrides, tmp_path):
     assert m["val/model_warp/miou_1s"] == pytest.approx(metrics["val/model_warp/miou_1s"])
     rows = (tmp_path / "eval" / "world_model_eval.md").read_text()
     assert "| 3D-Occ | model, warp only |" in rows and "| 3D-Occ | model, tokens only |" in rows
+    # The run bundles as a planner: the checkpoint's weights, anchors and grid.
+    from renderworld.planning import load_planner
+    from renderworld.training.checkpoint import load_checkpoint
     from renderworld.training.stages.world_model import export_planner_bundle
 
-    with pytest.raises(ValueError, match="world_model_ckpt: .* is a stage.forecaster='pose_warp'"):
-        export_planner_bundle(run / "checkpoints" / "last.pt", base_tok(wm_overrides), tmp_path)
+    ckpt = run / "checkpoints" / "last.pt"
+    bundle = export_planner_bundle(ckpt, base_tok(wm_overrides), tmp_path / "planner.pt")
+    planner = load_planner(bundle)
+    # ... and the main job's planner step (tools/export_planner.py) writes the same bundle.
+    import subprocess
+
+    from .conftest import PYTHON, REPO, subprocess_env
+
+    out = tmp_path / "job" / "planner" / "planner.pt"
+    proc = subprocess.run(
+        [PYTHON, "tools/export_planner.py", f"world_model_ckpt={ckpt}",
+         f"tokenizer_ckpt={base_tok(wm_overrides)}", f"out={out}"],
+        cwd=REPO, env=subprocess_env(), capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    via_tool = load_planner(out)
+    for k, v in via_tool.world_model.state_dict().items():
+        assert torch.equal(v, planner.world_model.state_dict()[k]), k
+    assert planner.kind == "pose_warp" and isinstance(planner.world_model, PoseWarpWorldModel)
+    stored = load_checkpoint(ckpt, expected_stage="world_model")["model"]
+    for k, v in planner.world_model.state_dict().items():
+        assert torch.equal(v, stored[k]), k
+    stage = WorldModelStage(compose_cfg([*wm_overrides, *POSE, f"run_dir={tmp_path / 'x'}"]))
+    assert planner.grid == stage.grid
+
+
+def _requests(batch, n: int) -> list:
+    """PlanRequests of a batch's windows: the history only (no future frame, pose or box).
+
+    A request holds at least 5 frames and these models read 3: the two oldest rows repeat the
+    first history frame standing still (the planner reads the last ``history_frames`` only).
+    """
+    import numpy as np
+
+    from renderworld.constants import COMMANDS
+    from renderworld.planning import PlanRequest
+
+    h, pad = HISTORY, max(0, 5 - HISTORY)
+    poses = batch["history_poses"].double().numpy()
+    out = []
+    for i in range(n):
+        occ = batch["occ"][i, :h].numpy()
+        p = np.concatenate([np.repeat(poses[i, :1], pad, axis=0), poses[i]])
+        out.append(PlanRequest(np.concatenate([np.repeat(occ[:1], pad, axis=0), occ]),
+                               np.diff(p[:, :2], axis=0), COMMANDS[int(batch["command"][i])],
+                               ego_yaws=p[:, 2]))  # fmt: skip
+    return out
+
+
+def test_bundled_planner_reproduces_the_stage_forecast(wm_overrides, tmp_path):
+    """plan() on the bundled pose-warp model gives the stage's own evaluation outputs: the
+    planner is the model, not an approximation."""
+    import numpy as np
+
+    from renderworld.planning import PlannerSession, load_planner, save_planner_bundle
+
+    stage, model, val_set = _stage(wm_overrides, tmp_path)
+    batch = next(iter(DataLoader(val_set, batch_size=2)))
+    fc, traj = stage.forecast(model, batch, stage.eval_settings[0], None)
+    tok = stage._tokenizer_on(torch.device("cpu"), None)
+    path = save_planner_bundle(tmp_path / "planner.pt", tok, model, grid=stage.grid)
+    reqs = _requests(batch, 2)
+    for fast in (False, True):  # the reference codec (the stage's) and the fast one
+        planner = load_planner(path, fast=fast)
+        res = planner.plan_batch(reqs)
+        for i, r in enumerate(res):
+            np.testing.assert_array_equal(r.trajectory, traj["model"][i].numpy())
+            np.testing.assert_array_equal(r.occupancy_forecast, fc["model"][i].numpy())
+        # Batch of one: the same model, GEMMs of another batch size (float32 round-off only).
+        one = planner.plan(reqs[1], forecast=False)
+        np.testing.assert_allclose(one.trajectory, traj["model"][1].numpy(), rtol=0, atol=1e-5)
+        session = PlannerSession(planner)
+        for frame in reqs[0].occupancy[-HISTORY:]:
+            session.push(frame)
+        again = session.plan(reqs[0].ego_displacements, reqs[0].command,
+                             ego_yaws=reqs[0].ego_yaws)  # fmt: skip
+        ref = planner.plan(reqs[0])
+        np.testing.assert_array_equal(again.trajectory, ref.trajectory)
+        np.testing.assert_array_equal(again.occupancy_forecast, ref.occupancy_forecast)
+    assert not np.array_equal(fc["model"][0].numpy(), fc["model_warp"][0].numpy())
 
 
 def test_extra_train_roots_add_their_train_windows(wm_overrides, converted, tmp_path):
