@@ -21,7 +21,10 @@ from renderworld.training.figures import bev_image
 from renderworld.training.schedule import read_schedule
 from renderworld.viewer import report_section
 
-__all__ = ["main_job_report", "schedule_cell"]
+__all__ = ["PLANNER_BUNDLE", "main_job_report", "schedule_cell"]
+
+#: File name of the main job's planner bundle, in ``<out>/planner/``.
+PLANNER_BUNDLE = "planner.pt"
 
 NA = "–"
 ABSENT = (
@@ -47,11 +50,8 @@ def main_job_report(cfg: Any, out: Path, results: list, seconds: float) -> Path:
     sections += _tokenizer_section(out)
     sections += _img2occ_section(out)
     sections += _world_model_section(out)
-<<<<<<< HEAD
     sections += _interaction_section(out)
-=======
     sections += _planner_section(out)
->>>>>>> planner
     sections.append(("3-D recording (Rerun)", report_section(out)))
     figures = _pictures(cfg, out)
     if figures:
@@ -132,7 +132,6 @@ def _world_model_section(out: Path) -> list[tuple[str, str]]:
     return [("Forecasting and planning (mini_val; 3D-Occ and Camera settings)", table.read_text())]
 
 
-<<<<<<< HEAD
 def _interaction_section(out: Path) -> list[tuple[str, str]]:
     from renderworld.training.stages.world_model_report import REPORT_BASENAME
 
@@ -146,10 +145,9 @@ def _interaction_section(out: Path) -> list[tuple[str, str]]:
         "someone, a trajectory that ignores the scene collides.\n\n"
     )
     return [("Interactions (held-out split; same checkpoints)", intro + table.read_text())]
-=======
-def _planner_section(out: Path) -> list[tuple[str, str]]:
-    from renderworld.pipeline.main_job import PLANNER_BUNDLE
 
+
+def _planner_section(out: Path) -> list[tuple[str, str]]:
     bundle = out / "planner" / PLANNER_BUNDLE
     if not bundle.is_file():
         return []
@@ -162,7 +160,6 @@ def _planner_section(out: Path) -> list[tuple[str, str]]:
         "Frames, units and streaming (`PlannerSession`): `docs/planner.md`."
     )
     return [("Planner", text)]
->>>>>>> planner
 
 
 #: Each training run of the main job and the validation metric its curves show (its monitor).

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from renderworld.constants import SIM_VERSION
-from renderworld.pipeline.job_report import main_job_report
+from renderworld.pipeline.job_report import PLANNER_BUNDLE, main_job_report
 from renderworld.pipeline.runner import Step, run_steps
 from renderworld.pipeline.scenario_steps import (
     LIBRARY_INFOS,
@@ -23,9 +23,6 @@ from renderworld.pipeline.scenario_steps import (
 )
 
 __all__ = ["EXPERIMENTS", "EXPORT_DEVICE", "PLANNER_BUNDLE", "main_job_steps", "run_main_job"]
-
-#: File name of the main job's planner bundle, in ``<out>/planner/``.
-PLANNER_BUNDLE = "planner.pt"
 
 #: The experiment each training step runs, per family (``configs/pipeline.yaml`` experiments):
 #: ``mini`` the demo's (simulated mini fixture, CPU), ``paper`` the paper's scale (real
