@@ -354,7 +354,7 @@ def test_mini_experiment_composes_with_its_deltas():
     assert cfg.trainer.max_minutes >= 20 and cfg.trainer.monitor == "val/model/miou_avg"
     assert cfg.stage.forecaster == "pose_warp" and cfg.stage.pose_anchors == "ctr_cv"
     assert cfg.stage.model.embed_dim == 64 and cfg.stage.model.num_scales == 2
-    assert cfg.trainer.max_steps == 400
+    assert cfg.trainer.max_steps == 800 and cfg.stage.pose_step_weighting == "uniform"
     assert cfg.stage.history == 5 and cfg.stage.future == 6 and cfg.stage.lambda_l2 == 0.1
 
 
