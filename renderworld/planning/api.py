@@ -235,6 +235,7 @@ class Planner:
             with self._world_model_threads():
                 poses, _ = self.world_model.predict_poses(hist, cmd, occ[:, -1])
             traj = poses[..., :2].float().cpu().numpy()
+            yaw = poses[..., 2].float().cpu().numpy()
             ms["world_model"] = 1e3 * (self._sync() - t0)
             fc = None
             if forecast:
@@ -242,7 +243,10 @@ class Planner:
                 fc = self._to_host(dec.flatten(0, 1), b * s).reshape(b, s, *dec.shape[2:])
                 ms = {k: ms[k] + more[k] for k in ms}
         timings = {**ms, "total": 1e3 * (self._sync() - t0), "batch_size": b}
-        return [PlanResult(traj[i], None if fc is None else fc[i], dict(timings)) for i in range(b)]
+        return [
+            PlanResult(traj[i], None if fc is None else fc[i], dict(timings), yaw[i])
+            for i in range(b)
+        ]
 
     def _plan_tokens(
         self,

@@ -169,8 +169,12 @@ class PlanResult:
             None for a trajectory-only plan (``forecast=False``).
         timings: milliseconds: ``encode``, ``world_model``, ``decode``, ``total`` (for a
             batch: the whole batch's times) and ``batch_size``.
+        yaws: [S] float32 radians, heading of each predicted future ego frame in the current
+            ego frame (the frame ``occupancy_forecast[k]`` is in) for a pose-aware world model;
+            None for a token world model, whose frames follow the travel direction.
     """
 
     trajectory: np.ndarray
     occupancy_forecast: np.ndarray | None
     timings: dict = field(default_factory=dict)
+    yaws: np.ndarray | None = None

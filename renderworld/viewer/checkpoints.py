@@ -85,25 +85,9 @@ def load_viewer_models(
     path = _given(world_model_ckpt, "world_model_ckpt", "forecast", why)
     if path is not None and models["tokenizer"] is None:
         why["forecast"] = why.get("tokenizer", "world_model_ckpt needs its tokenizer_ckpt")
-    elif path is not None and _forecaster(path) != "tokens":
-        why["forecast"] = (
-            f"world_model_ckpt {str(path)!r} is a stage.forecaster={_forecaster(path)!r} model; "
-            "the forecast layer draws the planner's token world models (stage.forecaster=tokens)"
-        )
     elif path is not None:
         models["planner"] = _planner(path, models["tokenizer"], Path(tokenizer_ckpt), device)
     return models
-
-
-def _forecaster(world_model_ckpt: Path) -> str:
-    """``stage.forecaster`` of a world-model checkpoint (``"tokens"`` or ``"pose_warp"``)."""
-    from omegaconf import OmegaConf
-
-    from renderworld.training.checkpoint import load_checkpoint
-    from renderworld.training.stages.world_model_settings import forecaster_of
-
-    ckpt = load_checkpoint(world_model_ckpt, expected_stage="world_model")
-    return forecaster_of(OmegaConf.create(ckpt["config"]))
 
 
 def _planner(world_model_ckpt: Path, tokenizer, tokenizer_ckpt: Path, device: str):
@@ -114,15 +98,16 @@ def _planner(world_model_ckpt: Path, tokenizer, tokenizer_ckpt: Path, device: st
     from renderworld.planning import Planner
     from renderworld.training.checkpoint import check_state_dict_keys, load_checkpoint
     from renderworld.training.stages.world_model_settings import (
+        build_world_model,
         check_same_tokenizer,
+        forecaster_of,
         world_model_config,
     )
-    from renderworld.world import WorldModel
 
     ckpt = load_checkpoint(world_model_ckpt, expected_stage="world_model")
     cfg = OmegaConf.create(ckpt["config"])
     check_same_tokenizer(cfg, tokenizer_ckpt)
-    model = WorldModel(world_model_config(cfg, tokenizer.cfg))
+    model = build_world_model(forecaster_of(cfg), world_model_config(cfg, tokenizer.cfg), cfg)
     check_state_dict_keys(model, ckpt["model"], source=f"checkpoint {str(world_model_ckpt)!r}")
     model.load_state_dict(ckpt["model"], strict=True)
     return Planner(tokenizer, model, device=device)

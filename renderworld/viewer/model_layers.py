@@ -218,8 +218,9 @@ class ForecastLayer:
             return {}
         item = self.data[w]
         request = PlanRequest(
-            item["occ"].numpy(), item["ego_displacements"].numpy(), COMMANDS[int(item["command"])]
-        )
+            item["occ"].numpy(), item["ego_displacements"].numpy(), COMMANDS[int(item["command"])],
+            ego_yaws=item["history_poses"][:, 2].numpy(),  # read by pose-aware models only
+        )  # fmt: skip
         result = self.planner.plan(request)
         traj = np.asarray(result.trajectory, dtype=np.float64)
         counts = {"world/ego/plan/planned": len(traj)}
@@ -230,7 +231,9 @@ class ForecastLayer:
         gt = np.vstack([np.zeros((1, 2)), fut[:n]])
         self._log_path(rec, rr, "world/ego/plan/gt", gt, (64, 220, 64), "GT")
         counts["world/ego/plan/gt"] = n
-        headings = trajectory_headings(traj)
+        # Each forecast frame in its own predicted ego frame: the model's headings, or (token
+        # models) the direction of travel.
+        headings = trajectory_headings(traj) if result.yaws is None else result.yaws
         for k in range(self.steps):
             ego_from_pred = np.eye(4)
             c, s = np.cos(headings[k]), np.sin(headings[k])

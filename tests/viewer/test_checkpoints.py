@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
-from renderworld.planning import save_planner_bundle
+from renderworld.planning import PlanRequest, save_planner_bundle
 from renderworld.training.checkpoint import CheckpointError
 from renderworld.viewer.checkpoints import load_viewer_models
 from tests.viewer.helpers import (
@@ -54,15 +55,44 @@ def test_a_world_model_checkpoint_plans_like_the_model_it_holds(tiny_models, tmp
         load_viewer_models(tokenizer_ckpt=other, world_model_ckpt=wm_path)
 
 
-def test_a_pose_warp_world_model_is_skipped_with_its_reason(tiny_models, tmp_path):
-    # The main job's pose-aware forecaster is no planner: the forecast layer says so and the
-    # recording goes on without it (make demo's viewer step must not fail on it).
+def test_a_pose_warp_world_model_draws_its_forecast_in_its_own_frames(
+    tiny_models, converted, tmp_path
+):
+    # The main job's pose-aware forecaster: loaded through the same checkpoint path; its plans
+    # carry the predicted headings the forecast frames are drawn in.
+    import yaml
+
+    from renderworld.data import load_infos
+    from renderworld.viewer.model_layers import ForecastLayer
+    from renderworld.world.pose import PoseWarpWorldModel
+
     _, tok, planner = tiny_models
     tok_path = tokenizer_checkpoint(tok, tmp_path / "tok.pt")
-    wm = world_model_checkpoint(planner.world_model, tok_path, tmp_path / "wm.pt", "pose_warp")
-    models = load_viewer_models(tokenizer_ckpt=tok_path, world_model_ckpt=wm)
-    assert models["planner"] is None and models["tokenizer"] is not None
-    assert "stage.forecaster='pose_warp'" in models.reasons["forecast"]
+    torch.manual_seed(1)
+    pw = PoseWarpWorldModel(planner.world_model.config, anchors="ctr_cv")
+    with torch.no_grad():  # a pose head that turns: headings differ from the travel direction
+        for p in pw.pose.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    path = world_model_checkpoint(pw, tok_path, tmp_path / "wm.pt", "pose_warp")
+    ckpt = torch.load(path, weights_only=True)
+    cfg = yaml.safe_load(ckpt["config"])
+    cfg["stage"]["pose_anchors"] = "ctr_cv"
+    ckpt["config"] = yaml.safe_dump(cfg)
+    torch.save(ckpt, path)
+    models = load_viewer_models(tokenizer_ckpt=tok_path, world_model_ckpt=path)
+    loaded = models["planner"]
+    assert loaded is not None and loaded.kind == "pose_warp" and "forecast" not in models.reasons
+    for k, v in pw.state_dict().items():
+        assert torch.equal(loaded.world_model.state_dict()[k], v), k
+    root, infos_dir = converted
+    layer = ForecastLayer(loaded, load_infos(infos_dir, "val"), root)
+    item = layer.data[0]
+    result = loaded.plan(
+        PlanRequest(item["occ"].numpy(), item["ego_displacements"].numpy(), "straight",
+                    ego_yaws=item["history_poses"][:, 2].numpy())
+    )  # fmt: skip
+    assert result.yaws is not None and result.yaws.shape == (loaded.config.future_frames,)
+    assert np.isfinite(result.yaws).all() and np.abs(result.yaws).max() > 0
 
 
 def test_an_img2occ_checkpoint_keeps_weights_and_readout_threshold(tiny_models, tmp_path):

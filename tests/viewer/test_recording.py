@@ -7,6 +7,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+import torch
 
 from renderworld.constants import CAMERA_NAMES, FREE_ID, LIDAR_NAME
 from renderworld.data import NuScenesReader
@@ -246,3 +247,31 @@ def test_a_dataset_without_occ3d_skips_gt_occupancy_with_one_line(converted, tmp
     assert sum("skipping layer 'gt_occupancy'" in x for x in lines) == 1
     counts, _ = read_back(summary.path)
     assert not any(e == "/world/ego/occupancy/gt" for e, _ in counts)
+
+
+def test_a_pose_aware_planner_draws_forecasts_in_its_predicted_frames(
+    converted, tiny_models, tmp_path
+):
+    """The main job's pose-aware world model: forecasts and plans at every keyframe with a
+    history, each forecast frame placed with the model's own predicted heading."""
+    from renderworld.planning import Planner
+    from renderworld.world.pose import PoseWarpWorldModel
+
+    root, infos = converted
+    _, tok, planner = tiny_models
+    torch.manual_seed(1)
+    pw = PoseWarpWorldModel(planner.world_model.config, anchors="ctr_cv")
+    with torch.no_grad():  # a pose head that turns: headings differ from the travel direction
+        for p in pw.pose.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    out = tmp_path / "scene.rrd"
+    lines: list[str] = []
+    summary = write_scene_recording(
+        root, out, scene=SCENE, infos_dir=infos, tokenizer=tok, planner=Planner(tok, pw),
+        layers=["ego", "forecast"], log=lines.append,
+    )  # fmt: skip
+    assert summary.skipped == [], lines
+    counts, _ = read_back(out)
+    assert sorted(counts[("/world/ego/plan/planned", "LineStrips3D:strips")]) == [4, 5, 6, 7]
+    for entity in FORECASTS:
+        assert sorted(counts[(entity, "Boxes3D:centers")]) == [4, 5, 6, 7]
