@@ -332,7 +332,8 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         n = metrics.get("val/num_windows", metrics.get("num_windows", float("nan")))
         header = [
             f"World model evaluation: split {self.cfg.dataset.val_split!r} of "
-            f"{self.cfg.dataset.name}, {int(n)} windows, history {self.settings.history}, "
+            f"{Path(str(self.cfg.dataset.data_root)).name} ({self.cfg.dataset.version}), "
+            f"{int(n)} windows, history {self.settings.history}, "
             f"future {self.settings.future}; grid {self.grid.name}",
             setting_header(self.eval_settings, self.cfg.get("ckpt"), self.settings.tokenizer_ckpt),
             "Forecast: mIoU over classes 0..16, full volume (OccWorld protocol); IoU = occupied "
