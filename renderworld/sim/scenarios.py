@@ -46,15 +46,19 @@ def integrate_speed(times: np.ndarray, v0: float, target) -> tuple[np.ndarray, n
     Args:
         times: [T] seconds, increasing.
         v0: speed before the first sample, m/s.
-        target: ``target(t, s) -> (speed m/s, accel m/s^2, decel m/s^2)``.
+        target: ``target(t, s) -> (speed m/s, accel m/s^2, decel m/s^2)``, with ``s`` the arc
+            length counted from the position at t = 0 (metres along the path, as the builders'
+            positions are); the samples before t = 0 run at ``v0`` when the target asks for no
+            change there, which every builder's does.
     """
     v = np.empty(len(times))
     s = np.zeros(len(times))
+    s_at_zero = v0 * max(0.0, -float(times[0]))  # arc length from times[0] to t = 0 at v0
     sp = v0
     v[0] = sp
     for i in range(1, len(times)):
         dt = times[i] - times[i - 1]
-        goal, acc, dec = target(times[i - 1], s[i - 1])
+        goal, acc, dec = target(times[i - 1], s[i - 1] - s_at_zero)
         new = float(np.clip(goal, sp - dec * dt, sp + acc * dt))
         s[i] = s[i - 1] + 0.5 * (sp + new) * dt
         sp = new

@@ -97,6 +97,7 @@ def _planner(world_model_ckpt: Path, tokenizer, tokenizer_ckpt: Path, device: st
 
     from renderworld.planning import Planner
     from renderworld.training.checkpoint import check_state_dict_keys, load_checkpoint
+    from renderworld.training.stages.common import grid_of
     from renderworld.training.stages.world_model_settings import (
         build_world_model,
         check_same_tokenizer,
@@ -107,7 +108,10 @@ def _planner(world_model_ckpt: Path, tokenizer, tokenizer_ckpt: Path, device: st
     ckpt = load_checkpoint(world_model_ckpt, expected_stage="world_model")
     cfg = OmegaConf.create(ckpt["config"])
     check_same_tokenizer(cfg, tokenizer_ckpt)
-    model = build_world_model(forecaster_of(cfg), world_model_config(cfg, tokenizer.cfg), cfg)
+    kind = forecaster_of(cfg)
+    model = build_world_model(kind, world_model_config(cfg, tokenizer.cfg), cfg)
     check_state_dict_keys(model, ckpt["model"], source=f"checkpoint {str(world_model_ckpt)!r}")
     model.load_state_dict(ckpt["model"], strict=True)
-    return Planner(tokenizer, model, device=device)
+    # A pose-aware model warps on its run's grid (metres per voxel), as its evaluation does.
+    grid = grid_of(cfg) if kind == "pose_warp" else None
+    return Planner(tokenizer, model, device=device, grid=grid)

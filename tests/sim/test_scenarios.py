@@ -176,6 +176,10 @@ def test_ego_reacts_as_described(seed, speed):
     assert not car.moving and v.min() < 0.9 * speed
     beside = np.argmin(np.abs(xy[:, 0] - car.trajectory.xy[0, 0]))
     assert xy[beside, 1] - y_e >= 2.5
+    # ... and holds its slow speed while alongside (rear axle from the car's rear to its front).
+    x_car, half = car.trajectory.xy[0, 0], car.size[1] / 2
+    alongside = (xy[:, 0] >= x_car - half) & (xy[:, 0] <= x_car + half)
+    assert alongside.any() and np.ptp(v[alongside]) < 0.05 and v[alongside].max() < 0.9 * speed
     assert abs(_ego_pose(world, world.duration + 4.0)[0][1] - y_e) < 0.3
 
 
@@ -268,3 +272,23 @@ def test_written_dataset_ships_its_split(tmp_path):
     assert assign_splits(["scene-6000"], vdir, strict=True) == {"scene-6000": "val"}
     scene = json.loads((vdir / "scene.json").read_text())[0]
     assert scene["nbr_samples"] == cfg.keyframes and "lead brake" in scene["description"]
+
+
+def test_speed_targets_see_the_distance_from_the_position_at_t0():
+    from renderworld.sim.layout import motion_times
+    from renderworld.sim.scenarios import integrate_speed
+
+    seen = []
+
+    def target(t, s):
+        seen.append((t, s))
+        return (10.0, 1.0, 1.0) if s < 20.0 else (5.0, 1.0, 1.0)  # slow down from 20 m on
+
+    times = motion_times(10.0)
+    s, v = integrate_speed(times, 10.0, target)
+    at = {round(t, 3): x for t, x in seen}
+    assert at[0.0] == pytest.approx(0.0, abs=1e-9)
+    assert abs(s[np.argmin(np.abs(times))]) < 1e-9
+    assert at[1.0] == pytest.approx(10.0, abs=1e-6)  # 1 s at 10 m/s: 10 m past the t = 0 spot
+    first_slow = times[np.argmax(v < 10.0 - 1e-9)]
+    assert 2.0 <= first_slow <= 2.0 + 3 * (times[1] - times[0])  # 20 m at 10 m/s

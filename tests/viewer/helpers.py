@@ -24,16 +24,19 @@ def tokenizer_checkpoint(tok, path):
     return save_checkpoint(state, path)
 
 
-def world_model_checkpoint(wm, tokenizer_ckpt, path, forecaster="tokens"):
+def world_model_checkpoint(wm, tokenizer_ckpt, path, forecaster="tokens", grid=None, **stage):
     """A ``world_model`` checkpoint of ``wm`` trained (as its config says) on ``tokenizer_ckpt``
-    (``forecaster``: the ``stage.forecaster`` its config records)."""
+    (``forecaster``: the ``stage.forecaster`` its config records; ``grid``: its ``grid`` group,
+    default the coarse Occ3D-range grid; ``stage``: more ``stage`` keys)."""
     c = wm.config
     model = {"embed_dim": c.embed_dim, "num_heads": c.num_heads, "num_scales": c.num_scales,
              "layers_per_scale": list(c.layers_per_scale)}  # fmt: skip
     config = {
+        "grid": grid or {"name": "coarse", "range_min": [-40.0, -40.0, -1.0],
+                         "range_max": [40.0, 40.0, 5.4], "shape": [50, 50, 4]},
         "stage": {"name": "world_model", "history": c.history_frames, "future": c.future_frames,
                   "lambda_l2": 1.0, "tokenizer_ckpt": str(tokenizer_ckpt), "model": model,
-                  "forecaster": forecaster},
+                  "forecaster": forecaster, **stage},
     }  # fmt: skip
     state = {"schema_version": 1, "stage": "world_model", "step": 0,
              "config": yaml.safe_dump(config), "model": wm.state_dict()}  # fmt: skip

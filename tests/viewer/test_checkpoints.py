@@ -60,8 +60,6 @@ def test_a_pose_warp_world_model_draws_its_forecast_in_its_own_frames(
 ):
     # The main job's pose-aware forecaster: loaded through the same checkpoint path; its plans
     # carry the predicted headings the forecast frames are drawn in.
-    import yaml
-
     from renderworld.data import load_infos
     from renderworld.viewer.model_layers import ForecastLayer
     from renderworld.world.pose import PoseWarpWorldModel
@@ -73,15 +71,17 @@ def test_a_pose_warp_world_model_draws_its_forecast_in_its_own_frames(
     with torch.no_grad():  # a pose head that turns: headings differ from the travel direction
         for p in pw.pose.parameters():
             p.add_(0.05 * torch.randn_like(p))
-    path = world_model_checkpoint(pw, tok_path, tmp_path / "wm.pt", "pose_warp")
-    ckpt = torch.load(path, weights_only=True)
-    cfg = yaml.safe_load(ckpt["config"])
-    cfg["stage"]["pose_anchors"] = "ctr_cv"
-    ckpt["config"] = yaml.safe_dump(cfg)
-    torch.save(ckpt, path)
+    # A run on a 0.8 m grid (the tokenizer's 50 x 50 x 4 over +-20 m): the warp must use it.
+    grid = {"name": "fine20", "range_min": [-20.0, -20.0, -1.0], "range_max": [20.0, 20.0, 5.4],
+            "shape": [50, 50, 4]}  # fmt: skip
+    path = world_model_checkpoint(
+        pw, tok_path, tmp_path / "wm.pt", "pose_warp", grid=grid, pose_anchors="ctr_cv"
+    )
     models = load_viewer_models(tokenizer_ckpt=tok_path, world_model_ckpt=path)
     loaded = models["planner"]
     assert loaded is not None and loaded.kind == "pose_warp" and "forecast" not in models.reasons
+    assert tuple(loaded.grid.range_min) == (-20.0, -20.0, -1.0)
+    assert tuple(loaded.grid.range_max) == (20.0, 20.0, 5.4)
     for k, v in pw.state_dict().items():
         assert torch.equal(loaded.world_model.state_dict()[k], v), k
     root, infos_dir = converted
