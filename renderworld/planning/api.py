@@ -17,7 +17,8 @@ Execution options (:class:`Planner`):
 
 * ``fast`` (default True): the package's :class:`SceneTokenizer` runs through
   :class:`renderworld.tokenizer.inference.FastSceneCodec` (channels-last, no full-resolution
-  log-probabilities); ``fast=False`` runs ``tokenizer.encode`` / ``tokenizer.decode``, the
+  log-probabilities; on a CPU one frame per pass, so that a frame's activations stay in the
+  last-level cache); ``fast=False`` runs ``tokenizer.encode`` / ``tokenizer.decode``, the
   reference path (and the only path for other tokenizers).
 * ``precision``: ``"float32"`` (default) or ``"bfloat16"``: ``torch.autocast`` around the
   occupancy decoder only, the FLOP-heavy stage. The encoder and the world model stay float32,
@@ -147,7 +148,9 @@ class Planner:
         self.fast, self.precision, self.compile = fast, precision, compile
         self.pin_memory = bool(pin_memory)
         use_codec = fast and isinstance(tokenizer, SceneTokenizer)
-        codec = FastSceneCodec(self.tokenizer) if use_codec else None
+        # A CPU runs the codec a frame per pass (cache-resident activations); a GPU batches.
+        per_pass = 1 if self.device.type == "cpu" else None
+        codec = FastSceneCodec(self.tokenizer, max_batch=per_pass) if use_codec else None
         self._encode_fn = codec.encode if codec else self.tokenizer.encode
         self._decode_fn = codec.decode if codec else self.tokenizer.decode
         self._names: tuple[str, ...] = ()  # codebook names, from the tokenizer's first encode

@@ -93,6 +93,33 @@ def test_codec_follows_new_weights_and_refuses_bad_input():
         codec.decode(occ)
 
 
+def test_codec_in_passes_equals_one_frame_at_a_time():
+    """``max_batch`` bounds the frames per trunk pass (a CPU planner runs one at a time): a
+    frame's tokens and voxels are those of coding it alone, in the input's order."""
+    torch.manual_seed(4)
+    tok = build_tokenizer(TOK).eval()
+    occ = torch.from_numpy(street(5)[0])
+    g = torch.Generator().manual_seed(5)
+    idx = torch.stack([torch.randint(0, k, (5, 8, 8), generator=g) for k in (16, 16)], 1)
+    tokens = Tokens(idx, tok.cfg.codebook_sizes, tok.cfg.codebook_names)
+    single = FastSceneCodec(tok)
+    with torch.inference_mode():
+        alone = torch.cat([single.encode(occ[i : i + 1]).indices for i in range(5)])
+        meta = tok.cfg.codebook_sizes, tok.cfg.codebook_names
+        voxels = torch.cat([single.decode(Tokens(idx[i : i + 1], *meta)) for i in range(5)])
+        for max_batch in (1, 2):
+            codec = FastSceneCodec(tok, max_batch=max_batch)
+            enc, dec = codec.encode(occ), codec.decode(tokens)
+            assert enc.indices.shape == (5, 2, 8, 8) and dec.shape == (5, *GRID)
+            if max_batch == 1:
+                assert torch.equal(enc.indices, alone) and torch.equal(dec, voxels)
+            assert (dec == tok.decode(tokens)).float().mean().item() >= 0.999
+            torch.testing.assert_close(enc.indices, tok.encode(occ).indices, rtol=0, atol=0)
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="max_batch: expected None or an int >= 1"):
+            FastSceneCodec(tok, max_batch=bad)
+
+
 def test_fast_planner_matches_the_reference_planner():
     fast, ref = scene_planner(fast=True), scene_planner(fast=False)
     for seed, command in ((0, "straight"), (1, "left"), (2, "right")):
