@@ -249,6 +249,8 @@ def _commit() -> str:
 
 
 OLD_MODES = ("today", "full", "traj")
+#: Added to REF's modes when REF's planner has the pose-warp world model.
+OLD_POSE_MODES = ("pw full", "pw traj")
 NEW_MODES = ("full", "traj", "full bf16", "pw full", "pw traj")
 #: This checkout with retain_freed_memory() and Planner(world_model_threads=1) (new+opt rows).
 OPT_MODES = ("full", "traj", "pw full", "pw traj")
@@ -286,9 +288,11 @@ def _round(proc: subprocess.Popen) -> dict:
     return json.loads(proc.stdout.readline())
 
 
-def compare(ref: str, cases, threads_list, reps: dict) -> None:
+def compare(ref: str, cases, threads_list, reps: dict, bf16: bool = True) -> None:
     """Commit ``ref``'s planner and this checkout's, each in a worker process, rounds
-    interleaved (one plan per mode and side per round; medians after one warm-up round)."""
+    interleaved (one plan per mode and side per round; medians after one warm-up round).
+    ``bf16=False`` leaves out the ``full bf16`` mode (slow on CPUs without bf16 arithmetic)."""
+    new_modes = tuple(m for m in NEW_MODES if bf16 or m != "full bf16")
     repo = Path(__file__).resolve().parents[1]
     header = (
         f"{'grid':<18}{'thr':>4}  {'planner':<9}{'mode':<10}{'encode':>9}{'world':>9}"
@@ -296,6 +300,9 @@ def compare(ref: str, cases, threads_list, reps: dict) -> None:
     )
     with tempfile.TemporaryDirectory() as tmp:
         old_tree = _extract(ref, Path(tmp))
+        old_modes = OLD_MODES
+        if (old_tree / "renderworld/planning/pose_warp.py").is_file():
+            old_modes += OLD_POSE_MODES
         for case in cases:
             name = {"mini": "mini 50x50x4", "occ3d": "Occ3D 200x200x16"}[case]
             print(f"# {name}: untrained models ({'mini' if case == 'mini' else 'paper'} sizes); "
@@ -303,8 +310,8 @@ def compare(ref: str, cases, threads_list, reps: dict) -> None:
             print(header)
             for threads in threads_list:
                 sides = {
-                    "old": (_worker(old_tree, case, threads, OLD_MODES), OLD_MODES),
-                    "new": (_worker(repo, case, threads, NEW_MODES), NEW_MODES),
+                    "old": (_worker(old_tree, case, threads, old_modes), old_modes),
+                    "new": (_worker(repo, case, threads, new_modes), new_modes),
                     "new+opt": (_worker(repo, case, threads, OPT_MODES, opt=True), OPT_MODES),
                 }
                 runs = {(side, m): [] for side, (_, modes) in sides.items() for m in modes}
@@ -354,6 +361,9 @@ def main() -> None:
         "--profile-decoder", action="store_true", help="only profile the Occ3D decoder (CPU)"
     )
     ap.add_argument(
+        "--no-bf16", action="store_true", help="--baseline: leave out the bf16 decoder mode"
+    )
+    ap.add_argument(
         "--baseline",
         metavar="REF",
         help="compare this checkout's planner (token and pose-warp world models) with commit "
@@ -371,8 +381,8 @@ def main() -> None:
         cases = [
             c for c, skip in (("mini", args.skip_mini), ("occ3d", args.skip_occ3d)) if not skip
         ]
-        compare(args.baseline, cases, args.threads, {"mini": args.reps_mini,
-                                                     "occ3d": args.reps_occ3d})  # fmt: skip
+        reps = {"mini": args.reps_mini, "occ3d": args.reps_occ3d}
+        compare(args.baseline, cases, args.threads, reps, bf16=not args.no_bf16)
         print(f"# load average at end {os.getloadavg()[0]:.1f}")
         return
     if args.profile_decoder:
