@@ -17,8 +17,8 @@ Execution options (:class:`Planner`):
 
 * ``fast`` (default True): the package's :class:`SceneTokenizer` runs through
   :class:`renderworld.tokenizer.inference.FastSceneCodec` (channels-last, no full-resolution
-  log-probabilities; on a CPU one frame per pass, so that a frame's activations stay in the
-  last-level cache); ``fast=False`` runs ``tokenizer.encode`` / ``tokenizer.decode``, the
+  log-probabilities; on a CPU as many frames per pass as the last-level cache holds: one at
+  the Occ3D grid); ``fast=False`` runs ``tokenizer.encode`` / ``tokenizer.decode``, the
   reference path (and the only path for other tokenizers).
 * ``precision``: ``"float32"`` (default) or ``"bfloat16"``: ``torch.autocast`` around the
   occupancy decoder only, the FLOP-heavy stage. The encoder and the world model stay float32,
@@ -54,7 +54,7 @@ from renderworld.planning.pose_warp import (
 )
 from renderworld.planning.request import PlanRequest, PlanResult, as_numpy
 from renderworld.tokenizer import SceneTokenizer
-from renderworld.tokenizer.inference import FastSceneCodec
+from renderworld.tokenizer.inference import FastSceneCodec, cache_frames_per_pass
 from renderworld.tokenizer.tokens import Tokens
 from renderworld.world.model import WorldModel
 from renderworld.world.pose import PoseWarpWorldModel
@@ -148,9 +148,11 @@ class Planner:
         self.fast, self.precision, self.compile = fast, precision, compile
         self.pin_memory = bool(pin_memory)
         use_codec = fast and isinstance(tokenizer, SceneTokenizer)
-        # A CPU runs the codec a frame per pass (cache-resident activations); a GPU batches.
-        per_pass = 1 if self.device.type == "cpu" else None
-        codec = FastSceneCodec(self.tokenizer, max_batch=per_pass) if use_codec else None
+        codec = None
+        if use_codec:  # a CPU codes as many frames per pass as its cache holds; a GPU batches
+            cpu = self.device.type == "cpu"
+            per_pass = cache_frames_per_pass(self.tokenizer) if cpu else None
+            codec = FastSceneCodec(self.tokenizer, max_batch=per_pass)
         self._encode_fn = codec.encode if codec else self.tokenizer.encode
         self._decode_fn = codec.decode if codec else self.tokenizer.decode
         self._names: tuple[str, ...] = ()  # codebook names, from the tokenizer's first encode

@@ -40,7 +40,7 @@ from renderworld.tokenizer.backbone import AttnBlock, ResBlock, _Upsample
 from renderworld.tokenizer.heads import _IDENTITY_ORDER, NON_AIR_IDS
 from renderworld.tokenizer.tokens import Tokens
 
-__all__ = ["FastSceneCodec"]
+__all__ = ["FastSceneCodec", "cache_frames_per_pass"]
 
 _CL = torch.channels_last
 _LOG_HALF = math.log(0.5)
@@ -167,6 +167,21 @@ def _run_blocks(x: torch.Tensor, blocks: nn.Sequential) -> torch.Tensor:
     return x
 
 
+#: Bytes of full-resolution features a CPU pass may hold (well inside a 32 MiB L3 cache).
+CPU_PASS_BYTES = 16 * 1024 * 1024
+
+
+def cache_frames_per_pass(tokenizer: SceneTokenizer, budget: int = CPU_PASS_BYTES) -> int:
+    """Frames per CPU pass whose full-resolution features ``[X, Y, C_0]`` float32 fit ``budget``
+    bytes (at least 1): 1 at the Occ3D grid (200x200x64: 10 MB a frame), every frame of a
+    planner call at the mini grid (50x50x32: 0.3 MB). Measured on a 2-core AVX2 EPYC (32 MiB
+    L3): ten Occ3D encodes 6.4 s in one pass, 5.0 s a frame at a time; at the mini grid one
+    pass per frame was 1.2-2x slower than one pass (docs/planner.md)."""
+    x, y, _ = tokenizer.cfg.grid_shape
+    per_frame = x * y * tokenizer.cfg.level_channels[0] * 4
+    return max(1, budget // per_frame)
+
+
 class FastSceneCodec:
     """Inference-only ``encode`` / ``decode`` of a :class:`SceneTokenizer`.
 
@@ -178,11 +193,9 @@ class FastSceneCodec:
     Args:
         tokenizer: the :class:`SceneTokenizer` (any variant).
         max_batch: most frames per pass through the encoder or decoder trunk (None: all at
-            once). On a CPU one frame at a time is faster: an Occ3D frame's full-resolution
-            activations (200x200x64 float32, 10 MB) stay in the last-level cache, ten frames'
-            do not (ten encodes 6.4 -> 5.0 s on a 2-core AVX2 EPYC, docs/planner.md). A
-            frame's result does not depend on the other frames of its batch beyond rounding:
-            oneDNN picks its kernels by batch size.
+            once). On a CPU, passes whose activations stay in the last-level cache are faster
+            (:func:`cache_frames_per_pass`). A frame's result does not depend on the other
+            frames of its pass beyond rounding (oneDNN picks its kernels by batch size).
     """
 
     def __init__(self, tokenizer: SceneTokenizer, max_batch: int | None = None):

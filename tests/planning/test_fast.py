@@ -120,6 +120,18 @@ def test_codec_in_passes_equals_one_frame_at_a_time():
             FastSceneCodec(tok, max_batch=bad)
 
 
+def test_cpu_passes_hold_what_the_cache_holds():
+    from renderworld.tokenizer.inference import cache_frames_per_pass
+
+    paper = build_tokenizer(TokenizerConfig(latent_channels=8, codebook_size=16))  # 200x200, C0 64
+    assert cache_frames_per_pass(paper) == 1  # 10 MB of full-resolution features a frame
+    mini = build_tokenizer(
+        TokenizerConfig(grid_shape=(50, 50, 4), latent_shape=(25, 25), base_channels=32)
+    )
+    assert cache_frames_per_pass(mini) == 52  # 0.3 MB a frame: a whole plan in one pass
+    assert cache_frames_per_pass(mini, budget=1) == 1
+
+
 def test_fast_planner_matches_the_reference_planner():
     fast, ref = scene_planner(fast=True), scene_planner(fast=False)
     for seed, command in ((0, "straight"), (1, "left"), (2, "right")):
