@@ -233,7 +233,10 @@ def _describe_machine(device: str) -> str:
                 break
     except OSError:
         pass
-    return f"{model}, {os.cpu_count()} logical CPUs"
+    isa = torch.backends.cpu.get_cpu_capability()  # AVX2 / AVX512: oneDNN's kernels differ
+    l3 = Path("/sys/devices/system/cpu/cpu0/cache/index3/size")
+    cache = f", L3 {l3.read_text().strip()}" if l3.is_file() else ""
+    return f"{model}, {os.cpu_count()} logical CPUs, {isa}{cache}"
 
 
 def _commit() -> str:
