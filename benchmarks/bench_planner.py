@@ -30,6 +30,10 @@ Modes, all on the same tokenizer and world model weights, one new frame per plan
 * ``full bf16``: ``new full`` with ``precision="bfloat16"`` (decoder under bf16 autocast;
   the trajectory is float32's). On CPU this uses AVX-512 BF16 where the CPU has it.
 * ``fast plan`` (``--modes ... "fast plan"``): ``Planner(fast=True).plan(request)``, no streaming.
+* ``pw full`` / ``pw traj`` (``--modes ... "pw full" "pw traj"``): the pose-warp world model (the
+  main job's kind: ``stage.forecaster=pose_warp``, anchors ``ctr_cv``) on the same tokenizer,
+  session, forecast on / off. With ``--device cuda`` this is the GPU check of both world
+  models in one run.
 
 Cases:
 
@@ -160,7 +164,18 @@ def agreement(models, grid, device: str) -> str:
     return "; ".join(out)
 
 
-MODES = ("today", "new full", "new traj", "full bf16", "fast plan")
+MODES = ("today", "new full", "new traj", "full bf16", "fast plan", "pw full", "pw traj")
+
+
+def pose_warp_model(wm):
+    """The pose-warp world model (the main job's kind) of ``wm``'s config, untrained, seed 0;
+    ``wm`` itself when it is one (the demo's checkpoints)."""
+    from renderworld.world.pose import PoseWarpWorldModel
+
+    if isinstance(wm, PoseWarpWorldModel):
+        return wm
+    torch.manual_seed(0)
+    return PoseWarpWorldModel(wm.config, anchors="ctr_cv")  # world_model_mini's anchors
 
 
 def bench_case(models, grid, device: str, reps: int, wanted) -> dict[str, dict]:
@@ -176,9 +191,14 @@ def bench_case(models, grid, device: str, reps: int, wanted) -> dict[str, dict]:
         "full bf16": (bf16, _run_session(True)),
     }
     modes["fast plan"] = (fast, _run_fast_plan)
+    planners = [fast, bf16]
+    if {"pw full", "pw traj"} & set(wanted):
+        pw = Planner(tok, pose_warp_model(wm), device=device)
+        modes.update({"pw full": (pw, _run_session(True)), "pw traj": (pw, _run_session(False))})
+        planners.append(pw)
     modes = {k: v for k, v in modes.items() if k in wanted}
     req = make_request(grid, ref.config.history_frames, np.random.default_rng(0))
-    sessions = {id(p): PlannerSession(p) for p in (fast, bf16)}
+    sessions = {id(p): PlannerSession(p) for p in planners}
     for session in sessions.values():
         for frame in req.occupancy[:-1]:
             session.push(frame)
