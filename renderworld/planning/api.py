@@ -147,11 +147,9 @@ class Planner:
         self.grid = grid
         self.fast, self.precision, self.compile = fast, precision, compile
         self.pin_memory = bool(pin_memory)
-        use_codec = fast and isinstance(tokenizer, SceneTokenizer)
         codec = None
-        if use_codec:  # a CPU codes as many frames per pass as its cache holds; a GPU batches
-            cpu = self.device.type == "cpu"
-            per_pass = cache_frames_per_pass(self.tokenizer) if cpu else None
+        if fast and isinstance(tokenizer, SceneTokenizer):  # a GPU codes all frames in one pass
+            per_pass = cache_frames_per_pass(tokenizer) if self.device.type == "cpu" else None
             codec = FastSceneCodec(self.tokenizer, max_batch=per_pass)
         self._encode_fn = codec.encode if codec else self.tokenizer.encode
         self._decode_fn = codec.decode if codec else self.tokenizer.decode
