@@ -176,7 +176,7 @@ def cache_frames_per_pass(tokenizer: SceneTokenizer, budget: int = CPU_PASS_BYTE
     bytes (at least 1): 1 at the Occ3D grid (200x200x64: 10 MB a frame), every frame of a
     planner call at the mini grid (50x50x32: 0.3 MB). Measured on a 2-core AVX2 EPYC (32 MiB
     L3): ten Occ3D encodes 6.4 s in one pass, 5.0 s a frame at a time; at the mini grid one
-    pass per frame was 1.2-2x slower than one pass (docs/planner.md)."""
+    pass per frame was 1.2-2.2x slower than one pass (docs/planner.md)."""
     x, y, _ = tokenizer.cfg.grid_shape
     per_frame = x * y * tokenizer.cfg.level_channels[0] * 4
     return max(1, budget // per_frame)

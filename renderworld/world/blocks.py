@@ -55,7 +55,7 @@ def short_causal_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor) ->
 
     For the several-frame prefix of a rollout on a CPU (the five history frames, every cell at
     once), where the fused kernel takes ~4x longer (the 5-frame prefix at 50x50 cells,
-    [2500, 4, 5, 32]: 23-36 ms against 5-9 ms, 2 threads, docs/planner.md); one new frame
+    [2500, 4, 5, 32]: 23-36 ms against ~5 ms, 2 threads, docs/planner.md); one new frame
     over the cached ones stays with the fused kernel, which is as fast. Same inputs, outputs
     and masking as the reference twin; sums run in another order (~1e-6, tested).
     """
