@@ -207,8 +207,9 @@ class FastSceneCodec:
         self.max_batch = max_batch
 
     def _passes(self, n: int) -> list[slice]:
+        """Slices of a batch of ``n`` frames, one per pass (one empty slice when ``n`` is 0)."""
         step = n if self.max_batch is None else self.max_batch
-        return [slice(i, i + step) for i in range(0, n, max(step, 1))]
+        return [slice(i, i + step) for i in range(0, n, step)] or [slice(0, 0)]
 
     @torch.inference_mode()
     def encode(self, occ: torch.Tensor) -> Tokens:
@@ -219,8 +220,6 @@ class FastSceneCodec:
         tok = self.tokenizer
         target = tok._check_occ(occ)
         parts = [self._encode_indices(target[p]) for p in self._passes(target.shape[0])]
-        if not parts:  # an empty batch: the tokenizer's own path gives the empty tokens
-            return tok.encode(occ)
         return tok._make_tokens([torch.cat(g) for g in zip(*parts)])
 
     def _encode_indices(self, target: torch.Tensor) -> list[torch.Tensor]:
@@ -250,10 +249,7 @@ class FastSceneCodec:
         idx = tok._check_tokens(tokens)
         lead = idx.shape[:-3]
         flat = idx.reshape(-1, *idx.shape[-3:])
-        parts = [self._decode_indices(flat[p]) for p in self._passes(flat.shape[0])]
-        if not parts:
-            return tok.decode(tokens)
-        occ = torch.cat(parts)
+        occ = torch.cat([self._decode_indices(flat[p]) for p in self._passes(flat.shape[0])])
         return occ.reshape(*lead, *occ.shape[1:])
 
     def _decode_indices(self, flat: torch.Tensor) -> torch.Tensor:

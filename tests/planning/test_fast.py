@@ -130,6 +130,15 @@ def test_cpu_passes_hold_what_the_cache_holds():
     )
     assert cache_frames_per_pass(mini) == 52  # 0.3 MB a frame: a whole plan in one pass
     assert cache_frames_per_pass(mini, budget=1) == 1
+    # A CPU planner's codec runs passes of that size; an empty batch still decodes.
+    planner = scene_planner()
+    codec = planner._encode_fn.__self__
+    assert codec.max_batch == cache_frames_per_pass(planner.tokenizer)
+    cfg = planner.tokenizer.cfg
+    empty = Tokens(
+        torch.zeros(0, 2, 8, 8, dtype=torch.long), cfg.codebook_sizes, cfg.codebook_names
+    )
+    assert FastSceneCodec(planner.tokenizer, max_batch=1).decode(empty).shape == (0, *GRID)
 
 
 def test_fast_planner_matches_the_reference_planner():

@@ -4,7 +4,7 @@ import torch
 from renderworld.constants import COMMANDS, FREE_ID
 from renderworld.world import WorldModel, rollout
 from renderworld.world.model import WorldModelCache
-from tests.world.test_model import random_inputs, tiny_model
+from tests.world.test_model import TINY, random_inputs, tiny_model
 
 
 def test_rollout_shapes_and_trajectory_is_cumsum():
@@ -132,15 +132,25 @@ def test_short_causal_attention_matches_the_fused_reference(t, total):
         torch.testing.assert_close(short_causal_attention(q, k, v)[:, :, 0], v[:, :, 0])
 
 
-def test_inference_attention_equals_the_training_path():
+def test_inference_attention_equals_the_training_path(monkeypatch):
     """The rollout's prefix runs the explicit products without autograd, training the fused
     kernel: a teacher-forced window gives the same predictions either way."""
+    from renderworld.world import blocks
+
+    calls = []
+    short = blocks.short_causal_attention
+    monkeypatch.setattr(
+        blocks, "short_causal_attention", lambda *a: calls.append(a[0].shape) or short(*a)
+    )
     m = tiny_model()
     tokens, disp, cmd = random_inputs(t=6)
     with torch.no_grad():
         fast = m(tokens, disp, cmd)
+    taken = len(calls)
     with torch.enable_grad():
         fused = m(tokens, disp, cmd)
+    # Every scene block of every scale and the ego block took the products, training none.
+    assert taken == sum(TINY["layers_per_scale"]) + 1 and len(calls) == taken
     for a, b in zip(fast.logits, fused.logits):
         torch.testing.assert_close(a, b.detach(), rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(fast.displacement, fused.displacement.detach(), rtol=1e-5, atol=1e-5)
