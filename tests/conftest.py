@@ -94,11 +94,20 @@ def mini_dataset() -> Path:
 
 @pytest.fixture(autouse=True, scope="session")
 def _isolated_table_cache(tmp_path_factory):
-    """Tests never write the reader's table cache into the user's ~/.cache."""
+    """Tests never write the package's caches into the user's ~/.cache.
+
+    The cache root is a fresh folder per session (tables and frames start empty); only the
+    compiled C++ rasterizer (``splat_ext/``, keyed by source, flags and torch) is kept across
+    sessions, under ``<repo>/.cache``.
+    """
     import os
 
     old = os.environ.get("RENDERWORLD_CACHE_DIR")
-    os.environ["RENDERWORLD_CACHE_DIR"] = str(tmp_path_factory.mktemp("table-cache"))
+    root = tmp_path_factory.mktemp("cache-root")
+    kernels = REPO_ROOT / ".cache" / "splat_ext"
+    kernels.mkdir(parents=True, exist_ok=True)
+    (root / "splat_ext").symlink_to(kernels, target_is_directory=True)
+    os.environ["RENDERWORLD_CACHE_DIR"] = str(root)
     yield
     if old is None:
         os.environ.pop("RENDERWORLD_CACHE_DIR", None)

@@ -19,15 +19,16 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from renderworld.cache import cache_root
+
 __all__ = ["TableCache", "default_cache_root"]
 
 CACHE_SCHEMA = 1
 
 
 def default_cache_root() -> Path:
-    """``$RENDERWORLD_CACHE_DIR`` or ``~/.cache/renderworld``."""
-    env = os.environ.get("RENDERWORLD_CACHE_DIR")
-    return Path(env) if env else Path.home() / ".cache" / "renderworld"
+    """The package's cache root: ``$RENDERWORLD_CACHE_DIR`` or ``~/.cache/renderworld``."""
+    return cache_root()
 
 
 class TableCache:

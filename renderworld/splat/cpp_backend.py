@@ -3,9 +3,9 @@
 Projection and binning are the pure-torch ones shared with the ``torch`` backend (so gradients
 reach means, quats and scales through torch autograd); only the per-pixel compositing, where
 almost all the time goes, runs in ``csrc/rasterize_cpu.cpp``. The kernel is compiled on first
-use with ``torch.utils.cpp_extension.load_inline`` and cached under
-``$RENDERWORLD_CACHE`` (default ``~/.cache/renderworld``)/``splat_ext/<hash>``, keyed by the source,
-flags and torch version. If compilation fails :func:`cpp_available` returns False, a warning
+use with ``torch.utils.cpp_extension.load_inline`` and cached under the package's cache root
+(``$RENDERWORLD_CACHE_DIR``, default ``~/.cache/renderworld``)/``splat_ext/<hash>``, keyed by the
+source, flags and torch version. If compilation fails :func:`cpp_available` returns False, a warning
 says why once, and ``backend="auto"`` falls back to ``torch``.
 """
 
@@ -19,6 +19,7 @@ from pathlib import Path
 
 import torch
 
+from renderworld.cache import cache_root
 from renderworld.splat.binning import bin_gaussians
 from renderworld.splat.projection import project_gaussians
 from renderworld.splat.tiled import TILE_SIZE
@@ -41,8 +42,7 @@ def _flags() -> list[str]:
 
 
 def _cache_root() -> Path:
-    root = os.environ.get("RENDERWORLD_CACHE") or Path.home() / ".cache" / "renderworld"
-    return Path(root) / "splat_ext"
+    return cache_root() / "splat_ext"
 
 
 def load_extension():
