@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from renderworld.constants import FREE_ID
+from renderworld.data import load_occ3d_labels
 from renderworld.img2occ.export import export_occupancy
 from renderworld.img2occ.readout import (
     ThresholdSearch,
@@ -127,9 +128,6 @@ def _items(batch, tokens):
 
 
 def test_export_writes_occ3d_layout_labels(synthetic_batch, tmp_path):
-    data = pytest.importorskip(
-        "renderworld.data", reason="renderworld.data (Occ3D label io) is not on this branch"
-    )
     model = make_model()
     model.set_threshold(0.09)  # near the initial opacities: a mix of occupied and free
     items = _items(synthetic_batch, ["tok0a", "tok1b", "tok2c"])
@@ -143,7 +141,7 @@ def test_export_writes_occ3d_layout_labels(synthetic_batch, tmp_path):
         out = model(synthetic_batch, render=False)
         want = model.readout(out)[0].numpy()
     for i, p in enumerate(paths):
-        labels = data.load_occ3d_labels(p, expected_shape=TEST_GRID.shape)
+        labels = load_occ3d_labels(p, expected_shape=TEST_GRID.shape)
         np.testing.assert_array_equal(labels.semantics, want)
         assert 0 < (labels.semantics != FREE_ID).sum() < labels.semantics.size
         if i == 1:
@@ -156,7 +154,6 @@ def test_export_writes_occ3d_layout_labels(synthetic_batch, tmp_path):
 
 
 def test_export_rejects_unsafe_names(synthetic_batch, tmp_path):
-    pytest.importorskip("renderworld.data", reason="renderworld.data is not on this branch")
     model = make_model()
     items = _items(synthetic_batch, ["../../etc"])
     with pytest.raises(ValueError, match="meta.sample_token"):
