@@ -27,7 +27,8 @@ Execution options (:class:`Planner`):
   not FLOP-bound, on a GPU). Only forecast voxels can change (tests bound the fraction).
 * ``compile``: None (default) or a ``torch.compile`` mode for the decoder (``"default"``,
   ``"reduce-overhead"`` = CUDA graphs on a GPU, ``"max-autotune"``); if compiling fails the
-  planner warns once and runs eagerly.
+  planner warns once and runs eagerly. Other errors of the compiled decoder (out of memory, a
+  shape bug) are raised as they are and leave it compiled.
 * ``pin_memory``: copy the forecast into pinned host memory (CUDA only; default on for CUDA).
 * ``world_model_threads``: torch intra-op threads while the world model runs (None: the
   process's setting). The mini world model's ops are small (625 cells x 64 channels): on a CPU
@@ -46,6 +47,7 @@ import numpy as np
 import torch
 
 from renderworld.constants import COMMANDS, GridSpec
+from renderworld.planning.compiled import compile_failures
 from renderworld.planning.pose_warp import (
     default_grid,
     forecast_from_poses,
@@ -194,7 +196,7 @@ class Planner:
         if self._compiled is not None:
             try:
                 return self._compiled(tokens)
-            except Exception as err:  # compiler missing or op unsupported: run eagerly
+            except compile_failures() as err:  # not compiled (no compiler, an op): run eagerly
                 warnings.warn(
                     f"compile={self.compile!r}: torch.compile failed ({type(err).__name__}: "
                     f"{str(err)[:200]}); running the decoder eagerly",

@@ -239,19 +239,41 @@ def test_compiled_decoder_matches_eager():
     assert (a.occupancy_forecast == b.occupancy_forecast).mean() >= 0.999
 
 
-def test_compile_failure_falls_back_to_eager():
-    planner, eager = scene_planner(), scene_planner()
+def test_compile_failure_falls_back_to_eager(monkeypatch):
+    """A real compilation failure (no working C++ compiler): warn once, then run eagerly."""
+    import torch._inductor.config as inductor_config
 
-    def broken(tokens):
-        raise RuntimeError("no compiler")
-
-    planner._compiled, planner.compile = broken, "default"
+    monkeypatch.setattr(inductor_config.cpp, "cxx", ("/nonexistent/c++",))
+    monkeypatch.setattr(inductor_config, "fx_graph_cache", False)  # no cached kernel to reuse
+    torch._dynamo.reset()
+    planner, eager = scene_planner(compile="default"), scene_planner()
     occ, disp = street(5, 7)
     req = PlanRequest(occ, disp, "left")
-    with pytest.warns(RuntimeWarning, match="compile='default': torch.compile failed"):
+    with pytest.warns(RuntimeWarning, match="compile='default': torch.compile failed .*C\\+\\+"):
         a = planner.plan(req)
     np.testing.assert_array_equal(a.occupancy_forecast, eager.plan(req).occupancy_forecast)
     assert planner._compiled is None  # warned once, eager from then on
+    torch._dynamo.reset()
+
+
+@pytest.mark.parametrize(
+    "error",
+    [torch.OutOfMemoryError("CUDA out of memory"), RuntimeError("shapes cannot be multiplied")],
+)
+def test_other_errors_of_the_compiled_decoder_are_raised(error):
+    """Out of memory or a shape bug is the caller's to see: no silent switch to eager mode."""
+    planner = scene_planner()
+
+    def failing(tokens):
+        raise error
+
+    planner._compiled, planner.compile = failing, "default"
+    req = PlanRequest(*street(5, 7), "left")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(type(error), match=str(error)):
+            planner.plan(req)
+    assert planner._compiled is failing  # still compiled: the next call tries it again
 
 
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
