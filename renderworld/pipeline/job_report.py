@@ -11,10 +11,12 @@ from typing import Any
 
 from renderworld.constants import SIM_VERSION
 from renderworld.pipeline.report import (
+    UnreadableFile,
     load_json,
     metrics_table,
     per_class_table,
     plot_training_curves,
+    unreadable_note,
     write_report,
 )
 from renderworld.training.figures import bev_image
@@ -78,7 +80,11 @@ def _data_section(cfg: Any) -> list[tuple[str, str]]:
         (data.parent / "sim_scenarios", "Scenario library (world-model training, occupancy only)"),
         (data.parent / "sim_interactions", "Interaction split (held out, occupancy only)"),
     ):
-        sim = load_json(root / "sim_report.json")
+        try:
+            sim = load_json(root / "sim_report.json")
+        except UnreadableFile as err:
+            lines.append(f"{what}: {unreadable_note(err)}")
+            continue
         if sim:
             scenes, mib = len(sim.get("scenes", [])), sim.get("bytes", 0) / 2**20
             lines.append(
@@ -89,7 +95,11 @@ def _data_section(cfg: Any) -> list[tuple[str, str]]:
 
 
 def _tokenizer_section(out: Path) -> list[tuple[str, str]]:
-    tok = load_json(out / "tokenizer_eval" / "eval_metrics.json")
+    title = "Tokenizer reconstruction (AM-VAE, mini_val, GT occupancy)"
+    try:
+        tok = load_json(out / "tokenizer_eval" / "eval_metrics.json")
+    except UnreadableFile as err:
+        return [(title, unreadable_note(err))]
     if not tok:
         return []
     body = metrics_table(
@@ -110,7 +120,7 @@ def _tokenizer_section(out: Path) -> list[tuple[str, str]]:
             "GT or reconstruction in that region)"
         )
     body += "".join(f"\n\n{x}" for x in legend)
-    return [("Tokenizer reconstruction (AM-VAE, mini_val, GT occupancy)", body)]
+    return [(title, body)]
 
 
 def _img2occ_section(out: Path) -> list[tuple[str, str]]:

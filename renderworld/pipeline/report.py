@@ -15,7 +15,16 @@ from pathlib import Path
 from renderworld.constants import FREE_ID, OCC3D_CLASSES
 from renderworld.training.figures import bev_image
 
-__all__ = ["bev_image", "plot_training_curves", "metrics_table", "per_class_table", "write_report"]
+__all__ = [
+    "UnreadableFile",
+    "bev_image",
+    "load_json",
+    "metrics_table",
+    "per_class_table",
+    "plot_training_curves",
+    "unreadable_note",
+    "write_report",
+]
 
 
 def plot_training_curves(metrics_csv: Path, out_png: Path, keys=("train/loss",)) -> Path | None:
@@ -75,12 +84,43 @@ def per_class_table(metrics: dict, prefix: str) -> str:
     return "\n".join([head, sep, "| " + " | ".join(vals) + " |"])
 
 
+class UnreadableFile(ValueError):
+    """A report input that exists but cannot be read.
+
+    Attributes:
+        path: the file.
+        reason: what went wrong (the parser's message).
+    """
+
+    def __init__(self, path: Path, reason: str) -> None:
+        super().__init__(f"{path}: unreadable ({reason})")
+        self.path, self.reason = Path(path), reason
+
+
 def load_json(path: Path) -> dict:
-    """A JSON file's content, or {} when missing."""
-    try:
-        return json.loads(Path(path).read_text())
-    except (OSError, ValueError):
+    """A JSON object file's content, or {} when the file does not exist (its step has not run).
+
+    Raises:
+        UnreadableFile: the file exists but is not a readable JSON object (a torn write, a
+            disk error): the report says so instead of dropping the section.
+    """
+    path = Path(path)
+    if not path.exists():
         return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as err:  # UnicodeDecodeError and JSONDecodeError included
+        raise UnreadableFile(path, f"{type(err).__name__}: {err}") from None
+    if not isinstance(data, dict):
+        raise UnreadableFile(path, f"expected a JSON object, got a {type(data).__name__}")
+    return data
+
+
+def unreadable_note(err: UnreadableFile) -> str:
+    """The report's line for an input it could not read (in place of what it would show)."""
+    return (
+        f"**Not shown: `{err.path}` is unreadable** ({err.reason}). Re-run the step that writes it."
+    )
 
 
 def write_report(out_dir: Path, sections: list[tuple[str, str]]) -> Path:

@@ -89,6 +89,33 @@ def test_report_plots_the_curves_of_every_training_run(tmp_path):
     assert "| tokenizer_camera | ran |" in text
 
 
+def test_an_unreadable_input_is_named_in_the_report(tmp_path):
+    """A torn or corrupt JSON does not drop its section silently: the report names the file."""
+    out, data = tmp_path / "out", tmp_path / "data"
+    _outputs(out)
+    cfg = OmegaConf.create({"data_root": str(data), "out": str(out)})
+    metrics = out / "tokenizer_eval" / "eval_metrics.json"
+    data.mkdir()
+    (data / "sim_report.json").write_text(json.dumps({"scenes": ["a", "b"], "files": 7}))
+    fine = _report(cfg, out, [], 1.0).read_text()
+    assert "| mIoU (classes 0..16, full volume, OccWorld protocol) | 60.00 % |" in fine
+    assert "2 scenes, 7 files" in fine and "is unreadable" not in fine
+    metrics.write_text('{"val/miou": 0.6, "val/io')  # a torn write
+    (data / "sim_report.json").write_text("[1, 2]")  # JSON, but not a report
+    text = _report(cfg, out, [], 1.0).read_text()
+    tok = text.split("## Tokenizer reconstruction", 1)[1].split("\n## ", 1)[0]
+    assert f"**Not shown: `{metrics}` is unreadable** (JSONDecodeError: " in tok
+    assert "OccWorld protocol" not in tok
+    assert f"Simulated fixture: **Not shown: `{data / 'sim_report.json'}` is unreadable** " in text
+    assert "expected a JSON object, got a list" in text and "2 scenes" not in text
+    assert "## Forecasting and planning" in text  # the other sections are still there
+    metrics.unlink()  # missing (the step has not run): no section, no note
+    (data / "sim_report.json").unlink()
+    text = _report(cfg, out, [], 1.0).read_text()
+    assert "## Tokenizer reconstruction" not in text and "## Data" not in text
+    assert "is unreadable" not in text
+
+
 def test_readme_pictures_are_checked_in_and_small():
     from pathlib import Path
 
