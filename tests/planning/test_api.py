@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 import torch
 
-from renderworld.constants import FREE_ID
+from renderworld.constants import COMMANDS, FREE_ID
 from renderworld.planning import Planner, PlanRequest, PlanResult
+from renderworld.tokenizer.tokens import Tokens
 from renderworld.world import WorldModel, WorldModelConfig
 from tests.world.fake_tokenizer import PatchTokenizer, PatchTokenizerConfig
 
@@ -17,7 +18,11 @@ def make_planner(seed=0, num_codebooks=2):
         codebook_sizes=tok.codebook_sizes, token_grid=tok.token_grid, embed_dim=16,
         num_heads=2, num_scales=2, layers_per_scale=(1, 1),
     )  # fmt: skip
-    return Planner(tok, WorldModel(cfg))
+    wm = WorldModel(cfg)
+    # Trained-like: the ego head starts at zero (the constant-velocity prior whatever the tokens
+    # or the command), so a plan that ignored either would pass every comparison below.
+    torch.nn.init.normal_(wm.ego_head.weight, std=0.5)
+    return Planner(tok, wm)
 
 
 def make_request(t=5, seed=0, command="straight"):
@@ -25,6 +30,7 @@ def make_request(t=5, seed=0, command="straight"):
     occ = np.full((t, *GRID), FREE_ID, dtype=np.uint8)
     occ[:, :, :, 0] = 11
     occ[:, 4:6, 2:4, 1] = rng.integers(1, 11, size=(t, 2, 2))
+    occ[:, 2:4, 4:6, 1:3] = rng.integers(1, 11, size=(t, 1, 1, 1))  # one object: a code per frame
     disp = np.column_stack([rng.uniform(1, 5, t - 1), rng.uniform(-0.3, 0.3, t - 1)])
     return PlanRequest(occ, disp, command)
 
@@ -42,20 +48,33 @@ def test_plan_result_shapes_and_types():
 
 
 @pytest.mark.parametrize("num_codebooks", [1, 2])
-def test_plan_matches_tokenizer_and_world_model_directly(num_codebooks):
+@pytest.mark.parametrize("command", COMMANDS)
+def test_plan_matches_tokenizer_and_world_model_directly(num_codebooks, command):
     planner = make_planner(num_codebooks=num_codebooks)
-    req = make_request(command="left")
+    req = make_request(command=command)
     res = planner.plan(req)
     tokens = planner.tokenizer.encode(torch.from_numpy(req.occupancy))
     out = planner.world_model.rollout(
         tokens.indices[None],
         torch.from_numpy(req.ego_displacements).float()[None],
-        torch.tensor([0]),
+        torch.tensor([COMMANDS.index(command)]),
     )
     np.testing.assert_allclose(res.trajectory, out.trajectory[0].numpy(), rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(
         res.trajectory, np.cumsum(out.displacements[0].numpy(), 0), atol=1e-5
     )
+    decoded = planner.tokenizer.decode(
+        Tokens(out.tokens[0], tokens.codebook_sizes, tokens.codebook_names)
+    )
+    np.testing.assert_array_equal(res.occupancy_forecast, decoded.numpy())
+    # The comparison can fail: another command, or other history tokens, plan otherwise.
+    other = COMMANDS[(COMMANDS.index(command) + 1) % len(COMMANDS)]
+    moved = PlanRequest(req.occupancy, req.ego_displacements, other)
+    assert np.abs(planner.plan(moved).trajectory - res.trajectory).max() > 1e-3
+    occ = req.occupancy.copy()
+    occ[:, :4, :4, 1:3] = 4  # cars in four patches: other codes
+    rescene = planner.plan(PlanRequest(occ, req.ego_displacements, command))
+    assert np.abs(rescene.trajectory - res.trajectory).max() > 1e-3
 
 
 def test_uses_last_five_frames_and_never_mutates_inputs():
