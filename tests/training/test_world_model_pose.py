@@ -16,6 +16,7 @@ from renderworld.world.pose import PoseWarpWorldModel
 
 from . import test_world_model_stage as base
 from .conftest import compose_cfg
+from .test_world_model_tokens import perturb_future
 
 HISTORY, FUTURE = base.HISTORY, base.FUTURE
 # The stage tests' module fixtures: the tiny fixture, its tiny tokenizer and the overrides.
@@ -46,18 +47,7 @@ def test_changing_the_future_ground_truth_leaves_the_forecast_unchanged(wm_overr
     batch = next(iter(DataLoader(val_set, batch_size=2)))
     setting = stage.eval_settings[0]
     fc, traj = stage.forecast(model, batch, setting, None)
-    h = HISTORY
-    g = torch.Generator().manual_seed(0)
-    other = copy.deepcopy(batch)
-    other["occ"][:, h:] = torch.randint(0, 18, other["occ"][:, h:].shape, generator=g).to(
-        torch.uint8
-    )
-    other["mask_camera"][:, h:] = ~other["mask_camera"][:, h:]
-    for key in ("future_poses", "future_traj", "future_boxes"):
-        other[key] = torch.randn(other[key].shape, generator=g) * 10
-    other["ego_displacements"][:, h - 1 :] = torch.randn(2, FUTURE, 2, generator=g) * 5
-    other["future_boxes_mask"] = ~other["future_boxes_mask"]
-    fc2, traj2 = stage.forecast(model, other, setting, None)
+    fc2, traj2 = stage.forecast(model, perturb_future(batch, HISTORY), setting, None)
     for k in ("model", "model_warp", "model_net", "copy_paste", "warp_cv", "warp_ctr"):
         assert torch.equal(fc[k], fc2[k]), k
     for k in ("model", "cv_traj", "ctr_traj"):
