@@ -289,3 +289,17 @@ def test_backprojected_loss_trains_finite_on_hard_cases(synthetic_batch):
         for name, p in model.named_parameters():
             assert p.grad is None or torch.isfinite(p.grad).all(), name
         model.zero_grad()
+
+
+def test_depth_l1_weight_adds_its_term_to_the_loss(synthetic_batch):
+    """``depth_l1_weight`` (on in the mini experiment, off in the paper's loss) adds exactly
+    weight x the relative-depth L1 of the rendered views to the training loss."""
+    torch.manual_seed(0)
+    plain = make_model("torch").eval()  # eval: every camera rendered, no random view subset
+    weighted = make_model("torch", depth_l1_weight=2.0).eval()
+    weighted.load_state_dict(plain.state_dict())
+    loss, logs = plain.loss(synthetic_batch, plain(synthetic_batch))
+    loss_w, logs_w = weighted.loss(synthetic_batch, weighted(synthetic_batch))
+    assert logs_w["loss_depth_l1"] > 0.01
+    torch.testing.assert_close(logs_w["loss_depth_l1"], logs["loss_depth_l1"])
+    torch.testing.assert_close(loss_w - loss, 2.0 * logs["loss_depth_l1"], rtol=1e-5, atol=1e-6)

@@ -129,10 +129,13 @@ def test_requests_beyond_the_physical_bound_are_refused(disp, match):
         PlanRequest(_occ(), disp, "straight")
 
 
-def test_the_bound_itself_is_accepted():
-    assert MAX_STEP_DISPLACEMENT_M == 50.0
-    disp = np.array([[50.0, 0], [0, -50.0], [30.0, 40.0], [-50.0, 0]])
-    PlanRequest(_occ(), disp, "straight")  # exactly 50 m per step: allowed
+def test_the_bound_itself_is_accepted_and_one_ulp_more_refused():
+    m = MAX_STEP_DISPLACEMENT_M
+    disp = np.array([[m, 0], [0, -m], [0.6 * m, 0.8 * m], [-m, 0]])
+    PlanRequest(_occ(), disp, "straight")  # exactly the bound per step: allowed
+    disp[2] = [0, np.nextafter(m, np.inf)]
+    with pytest.raises(ValueError, match=f"at most {m:g} m per 0.5 s .* at row 2"):
+        PlanRequest(_occ(), disp, "straight")
 
 
 def test_session_refusals():

@@ -102,14 +102,7 @@ def test_stage_config_composes_and_validates(converted, tmp_path):
     assert mcfg.grid.shape == (50, 50, 4) and mcfg.input_size == (56, 96)
     assert mcfg.render_size == (27, 48) and mcfg.adjacent_frames is False
     assert mcfg.depth_l1_weight == 1.0
-    paper = compose_cfg(["stage=img2occ", f"run_dir={tmp_path}"])
-    assert paper.stage.model.depth_l1_weight == 0.0  # the paper's loss unless an experiment says
     mini = compose_cfg(["experiment=img2occ_mini", f"run_dir={tmp_path}"])
-    # The schedule is steps; max_minutes is only a guard far above its ~11 min on 2 CPU cores.
-    assert mini.stage.model.depth_l1_weight > 0 and mini.trainer.max_steps == 2700
-    assert mini.trainer.max_minutes >= 30
-    assert mini.stage.threshold.class_offsets and mini.stage.threshold.per_class
-    assert mini.trainer.monitor == "val/cam/miou" and mini.grid.name == "coarse"
     img2occ_config(mini)  # sizes satisfy the model's divisibility rule
     # The 3-D GT upper reference is the same network and budget: only the supervision differs.
     ref = compose_cfg(["experiment=img2occ_mini_3dgt", f"run_dir={tmp_path}"])

@@ -47,6 +47,13 @@ TINY_MODEL = [
     "stage.model.layers_per_scale=[1,1]",
 ]
 QUIET = ["trainer.progress_bar=false", "trainer.tensorboard=false"]
+TINY_TOKENIZER = [
+    "stage.model.latent_channels=8",
+    "stage.model.codebook_size=32",
+    "stage.model.base_channels=8",
+    "stage.model.num_res_blocks=1",
+    "stage.model.attention=false",
+]
 
 
 @pytest.fixture(scope="module")
@@ -66,10 +73,7 @@ def _tiny_tokenizer(converted, run, *extra: str):
     cfg = compose_cfg([
         "stage=tokenizer", *_data(converted), f"run_dir={run}", *QUIET, *extra,
         "trainer.max_steps=2", "trainer.batch_size=2", "trainer.val_every=0",
-        "trainer.monitor=val/miou", "trainer.monitor_mode=max",
-        "stage.model.latent_channels=8", "stage.model.codebook_size=32",
-        "stage.model.base_channels=8", "stage.model.num_res_blocks=1",
-        "stage.model.attention=false",
+        "trainer.monitor=val/miou", "trainer.monitor_mode=max", *TINY_TOKENIZER,
     ])  # fmt: skip
     train(cfg)
     return run / "checkpoints" / "last.pt"
@@ -347,15 +351,21 @@ def _load_tok(path):
     return load_tokenizer(path)
 
 
-def test_mini_experiment_composes_with_its_deltas():
-    cfg = compose_cfg(["experiment=world_model_mini", "stage.tokenizer_ckpt=tok.pt"])
-    assert cfg.stage.name == "world_model" and cfg.dataset.name == "sim_mini"
-    assert cfg.grid.name == "coarse" and cfg.trainer.device == "cpu"
-    assert cfg.trainer.max_minutes >= 20 and cfg.trainer.monitor == "val/model/miou_avg"
-    assert cfg.stage.forecaster == "pose_warp" and cfg.stage.pose_anchors == "ctr_cv"
-    assert cfg.stage.model.embed_dim == 64 and cfg.stage.model.num_scales == 2
-    assert cfg.trainer.max_steps == 800 and cfg.stage.pose_step_weighting == "uniform"
-    assert cfg.stage.history == 5 and cfg.stage.future == 6 and cfg.stage.lambda_l2 == 0.1
+def test_mini_experiment_builds_the_model_it_names(converted, tokenizer_ckpt, tmp_path):
+    """experiment=world_model_mini (the main job's) trains the pose-warp model with the blended
+    CTR / CV pose anchors at its own size and window; the stage's defaults build another."""
+    from renderworld.world.pose import PoseWarpWorldModel
+
+    tok = f"stage.tokenizer_ckpt={tokenizer_ckpt}"
+    mini = compose_cfg(["experiment=world_model_mini", tok, f"run_dir={tmp_path}"])
+    plain = compose_cfg(["stage=world_model", "grid=coarse", tok, f"run_dir={tmp_path}"])
+    model = WorldModelStage(mini).build_model(mini)
+    default = WorldModelStage(plain).build_model(plain)
+    assert isinstance(model, PoseWarpWorldModel) and model.pose.anchors == "ctr_cv"
+    assert type(default) is WorldModel
+    built = (model.config.embed_dim, model.config.history_frames, model.config.future_frames)
+    assert built == (mini.stage.model.embed_dim, mini.stage.history, mini.stage.future)
+    assert model.config.embed_dim != default.config.embed_dim
 
 
 def test_camera_setting_scores_pseudo_label_inputs_against_gt(converted, tmp_path):

@@ -1,0 +1,48 @@
+"""The ``tokenizer`` stage's evaluation: the OccWorld protocol on its reconstructions."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from renderworld.constants import GRIDS
+from renderworld.data import load_infos
+from renderworld.metrics import OccupancyMetric
+from renderworld.training import evaluate
+from renderworld.training.stages.tokenizer import OccFrames, load_tokenizer
+
+from . import test_world_model_stage as base
+from .conftest import compose_cfg
+
+# The world-model tests' module fixtures: the tiny fixture and a tiny tokenizer trained on it.
+converted, tokenizer_ckpt = base.converted, base.tokenizer_ckpt
+
+
+def test_eval_scores_the_reconstructions_with_renderworld_metrics(
+    converted, tokenizer_ckpt, tmp_path
+):
+    """``val/miou`` / ``val/iou`` (full volume) and ``val/cam/*`` (camera mask) are what
+    :class:`OccupancyMetric` gives on decode(encode(occ)) of every val frame, accumulated."""
+    root, infos = converted
+    cfg = compose_cfg(
+        ["stage=tokenizer", *base._data(converted), f"ckpt={tokenizer_ckpt}",
+         f"run_dir={tmp_path}", *base.QUIET, *base.TINY_TOKENIZER],
+        "eval",
+    )  # fmt: skip
+    got = evaluate(cfg)
+    tok = load_tokenizer(tokenizer_ckpt)
+    frames = OccFrames(load_infos(infos, "val"), root, GRIDS["coarse"])
+    full, cam = OccupancyMetric(), OccupancyMetric(mask_name="camera")
+    with torch.no_grad():
+        for i in range(len(frames)):
+            occ, mask = frames[i]["occ"][None], frames[i]["mask_camera"][None]
+            rec = tok.decode(tok.encode(occ))
+            full.update(rec, occ)
+            cam.update(rec, occ, mask=mask)
+    want, want_cam = full.compute(), cam.compute()
+    assert got["val/miou"] == pytest.approx(want["miou"], abs=1e-12)
+    assert got["val/iou"] == pytest.approx(want["iou_geometry"], abs=1e-12)
+    assert got["val/cam/miou"] == pytest.approx(want_cam["miou"], abs=1e-12)
+    assert got["val/cam/iou"] == pytest.approx(want_cam["iou_geometry"], abs=1e-12)
+    assert got["val/miou"] != pytest.approx(got["val/cam/miou"])  # the mask is applied
+    assert 0.0 < got["val/miou"] < 1.0  # a 2-step tokenizer: neither nothing nor everything
