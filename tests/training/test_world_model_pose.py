@@ -16,7 +16,7 @@ from renderworld.world.pose import PoseWarpWorldModel
 
 from . import test_world_model_stage as base
 from .conftest import compose_cfg
-from .test_world_model_tokens import perturb_future
+from .test_world_model_tokens import busy_stage, perturb_future
 
 HISTORY, FUTURE = base.HISTORY, base.FUTURE
 # The stage tests' module fixtures: the tiny fixture, its tiny tokenizer and the overrides.
@@ -31,14 +31,8 @@ def base_tok(overrides: list[str]) -> str:
 
 
 def _stage(wm_overrides, tmp_path):
-    cfg = compose_cfg([*wm_overrides, *POSE, f"run_dir={tmp_path}"])
-    stage = WorldModelStage(cfg)
-    _, val_set = stage.build_datasets(cfg)
-    model = stage.build_model(cfg).eval()
+    stage, model, val_set = busy_stage([*wm_overrides, *POSE], tmp_path)
     assert isinstance(model, PoseWarpWorldModel)
-    with torch.no_grad():  # a pose head that is not constant turn rate, a busy token net
-        for p in model.parameters():
-            p.add_(0.05 * torch.randn_like(p))
     return stage, model, val_set
 
 

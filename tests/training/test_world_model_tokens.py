@@ -61,20 +61,22 @@ def _random_codes(codes, frames: slice, sizes, g: torch.Generator) -> torch.Tens
     return out
 
 
-def _stage(wm_overrides, tmp_path):
-    cfg = compose_cfg([*wm_overrides, f"run_dir={tmp_path}"])
+def busy_stage(overrides: list[str], tmp_path) -> tuple:
+    """(stage, model, val windows) of ``overrides``: a fresh model with every weight moved, so
+    the ego / pose head is not its prior and the token net is busy."""
+    cfg = compose_cfg([*overrides, f"run_dir={tmp_path}"])
     stage = WorldModelStage(cfg)
     _, val_set = stage.build_datasets(cfg)
     model = stage.build_model(cfg).eval()
-    assert stage.forecaster == "tokens" and isinstance(model, WorldModel)
-    with torch.no_grad():  # a trained-like ego head (it starts at zero) and a busy token net
+    with torch.no_grad():
         for p in model.parameters():
             p.add_(0.05 * torch.randn_like(p))
     return stage, model, val_set
 
 
 def test_changing_the_future_leaves_the_forecast_and_plan_unchanged(wm_overrides, tmp_path):
-    stage, model, val_set = _stage(wm_overrides, tmp_path)
+    stage, model, val_set = busy_stage(wm_overrides, tmp_path)
+    assert stage.forecaster == "tokens" and isinstance(model, WorldModel)
     batch = next(iter(DataLoader(val_set, batch_size=2)))
     setting, h = stage.eval_settings[0], HISTORY
     window = HISTORY + FUTURE
