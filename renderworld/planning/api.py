@@ -47,7 +47,7 @@ import numpy as np
 import torch
 
 from renderworld.constants import COMMANDS, GridSpec
-from renderworld.planning.compiled import compile_failures
+from renderworld.planning.compiled import is_compile_failure
 from renderworld.planning.pose_warp import (
     default_grid,
     forecast_from_poses,
@@ -196,8 +196,10 @@ class Planner:
         if self._compiled is not None:
             try:
                 return self._compiled(tokens)
-            except compile_failures() as err:  # not compiled (no compiler, an op): run eagerly
-                warnings.warn(
+            except Exception as err:
+                if not is_compile_failure(err):  # out of memory, a shape bug: the caller's
+                    raise
+                warnings.warn(  # not compiled (no compiler, an op it cannot lower): run eagerly
                     f"compile={self.compile!r}: torch.compile failed ({type(err).__name__}: "
                     f"{str(err)[:200]}); running the decoder eagerly",
                     RuntimeWarning,

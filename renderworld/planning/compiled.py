@@ -3,12 +3,13 @@
 The planner's compiled decoder falls back to eager mode only on these: a missing or broken C++
 compiler, a missing Triton, an operator the backend cannot lower, a construct Dynamo does not
 trace. Every other exception of a compiled call (out of memory, a shape bug surfacing while
-tracing as ``TorchRuntimeError``, a CUDA fault) is the caller's to see, raised as is.
+tracing as ``TorchRuntimeError``, a CUDA fault) is the caller's to see, raised as is, and so is
+a backend failure whose cause is running out of memory (autotuning on a full GPU).
 """
 
 from __future__ import annotations
 
-__all__ = ["compile_failures"]
+__all__ = ["compile_failures", "is_compile_failure"]
 
 
 def compile_failures() -> tuple[type[BaseException], ...]:
@@ -35,3 +36,20 @@ def compile_failures() -> tuple[type[BaseException], ...]:
         inductor.TritonMissing,
         inductor.GPUTooOldForTriton,
     )
+
+
+def is_compile_failure(err: BaseException) -> bool:
+    """Whether ``err`` says the code could not be compiled (see :func:`compile_failures`).
+
+    Args:
+        err: an exception raised by a ``torch.compile``-d callable.
+
+    Returns:
+        True for the compile failures, except a backend failure caused by out of memory.
+    """
+    import torch
+
+    if not isinstance(err, compile_failures()):
+        return False
+    inner = getattr(err, "inner_exception", None)
+    return not isinstance(inner, torch.OutOfMemoryError)
