@@ -4,11 +4,11 @@ The episode starts from the logged ego state after the history (keyframe ``H - 1
 five history frames): the history frames are the logged ego's. Then, at every keyframe until
 the scene's last: the planner gets an :class:`~renderworld.sim.closed_loop.planners.Observation`
 (occupancy rendered at the ego's actual poses if it reads occupancy, history in the current
-ego frame, the route's command), its plan is checked (shape [6, 2], finite, each step at most
-:data:`renderworld.planning.MAX_STEP_DISPLACEMENT_M`) and tracked for 0.5 s at 10 Hz by the
-kinematic model (:mod:`renderworld.sim.closed_loop.kinematics`). Agents replay their scripted
-trajectories (non-reactive). After every 0.1 s step the ego box is checked against every
-object's box and against the driveable surface.
+ego frame, the route's command), its plan is checked (shape [S, 2], S >= 1 waypoints 0.5 s
+apart, finite, each step at most :data:`renderworld.planning.MAX_STEP_DISPLACEMENT_M`) and
+tracked for 0.5 s at 10 Hz by the kinematic model (:mod:`renderworld.sim.closed_loop.kinematics`).
+Agents replay their scripted trajectories (non-reactive). After every 0.1 s step the ego box
+is checked against every object's box and against the driveable surface.
 
 Ends: ``scene_end`` (the scene's last keyframe), ``collision``, ``off_road`` (a corner or edge
 midpoint of the ego box off the driveable surface), or ``planner_error`` (a plan of the wrong
@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from renderworld.constants import FUTURE_FRAMES, HISTORY_FRAMES, KEYFRAME_DT
+from renderworld.constants import HISTORY_FRAMES, KEYFRAME_DT
 from renderworld.planning.request import MAX_STEP_DISPLACEMENT_M
 from renderworld.sim.closed_loop.boxes import Contact, SceneBoxes, ego_on_road, first_contact
 from renderworld.sim.closed_loop.kinematics import (
@@ -88,9 +88,9 @@ def _check_plan(traj) -> tuple[np.ndarray | None, str]:
     try:
         arr = np.asarray(traj, dtype=np.float64)
     except (TypeError, ValueError):
-        return None, f"plan: expected a [{FUTURE_FRAMES}, 2] array, got {type(traj).__name__}"
-    if arr.shape != (FUTURE_FRAMES, 2):
-        return None, f"plan: expected shape [{FUTURE_FRAMES}, 2], got {list(arr.shape)}"
+        return None, f"plan: expected an [S, 2] array, got {type(traj).__name__}"
+    if arr.ndim != 2 or arr.shape[0] < 1 or arr.shape[1] != 2:
+        return None, f"plan: expected shape [S >= 1, 2], got {list(arr.shape)}"
     if not np.isfinite(arr).all():
         return None, "plan: NaN or inf in the trajectory"
     steps = np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), arr]), axis=0).T)
