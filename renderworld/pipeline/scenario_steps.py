@@ -17,11 +17,20 @@ from pathlib import Path
 
 from renderworld.pipeline.runner import Step
 
-__all__ = ["ScenarioData", "interaction_eval_step", "preset_version", "scenario_steps"]
+__all__ = [
+    "CLOSED_LOOP",
+    "ScenarioData",
+    "closed_loop_step",
+    "interaction_eval_step",
+    "preset_version",
+    "scenario_steps",
+]
 
 #: Step names of the scenario data (the world-model training depends on the library's).
 LIBRARY_INFOS = "scenario_infos"
 INTERACTION_INFOS = "interaction_infos"
+#: Step (and output folder) of the closed-loop evaluation on the interaction split.
+CLOSED_LOOP = "closed_loop"
 
 
 def preset_version(repo: Path, preset: str) -> str:
@@ -128,4 +137,30 @@ def interaction_eval_step(
         ),  # fmt: skip
         run,
         depends_on=("world_model", INTERACTION_INFOS),
+    )
+
+
+def closed_loop_step(bundle: Path, out: Path, repo: Path) -> Step:
+    """Drive the interaction split's scenes in closed loop: the reference planners and the main
+    job's planner bundle (``tools/drive.py``; the preset's worlds, rebuilt from its seed)."""
+    conf = repo / "configs"
+    return Step(
+        CLOSED_LOOP,
+        "drive the interaction split in closed loop: log replay, CV, CTR, rule-based, world model",
+        (
+            sys.executable,
+            "tools/drive.py",
+            "preset=interactions",
+            "planners=[log_replay,cv,ctr,rule_based]",
+            f"planner={bundle}",
+            f"out={out / CLOSED_LOOP}",
+        ),  # fmt: skip
+        out / CLOSED_LOOP,
+        depends_on=("planner",),
+        inputs=(
+            repo / "renderworld" / "sim",
+            conf / "sim",
+            conf / "drive.yaml",
+            repo / "tools" / "drive.py",
+        ),
     )
