@@ -99,14 +99,16 @@ def test_reference_planners_meet_the_bars(interactions):
 
 def test_same_seed_and_bundle_give_bit_identical_scores(tmp_path):
     path = _bundle(tmp_path / "planner.pt")
-    runs = []
+    runs, states = [], []
     for _ in range(2):
         worlds = [_world(0), _world(12)]
         run = run_closed_loop(worlds, [make_planner(str(path))], progress=False)
         scores = [{k: v for k, v in r.items() if not k.endswith("_ms")} for r in run.rows]
         runs.append(json.dumps(scores, sort_keys=True))  # everything but the timings
+        states.append(np.concatenate([e.states for e in run.episodes]))
         assert run.timing["world_model"]["voxelise_ms"] > 0
     assert runs[0] == runs[1]
+    assert states[0].tobytes() == states[1].tobytes()  # every 10 Hz state, bit for bit
 
 
 def test_bundle_on_another_grid_is_refused(tmp_path):

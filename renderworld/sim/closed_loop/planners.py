@@ -210,6 +210,12 @@ class RuleBased(_Reference):
         return _to_ego(obs.pose, xy)
 
 
+def _same_grid(a: GridSpec, b: GridSpec) -> bool:
+    return tuple(a.shape) == tuple(b.shape) and bool(
+        np.allclose(a.range_min, b.range_min) and np.allclose(a.range_max, b.range_max)
+    )
+
+
 class BundlePlanner:
     """A planner bundle driving through the public API (``PlannerSession``).
 
@@ -228,21 +234,12 @@ class BundlePlanner:
             raise TypeError(f"planner: expected a Planner, got {type(planner).__name__}")
         if planner.grid is None:
             raise ValueError(f"planner {name}: the bundle names no occupancy grid")
-        if (
-            grid is not None
-            and tuple(grid.shape) != tuple(planner.grid.shape)
-            or (
-                grid is not None
-                and not (
-                    np.allclose(grid.range_min, planner.grid.range_min)
-                    and np.allclose(grid.range_max, planner.grid.range_max)
-                )
-            )
-        ):
+        if grid is not None and not _same_grid(grid, planner.grid):
+            g = planner.grid
             raise ValueError(
-                f"planner {name}: the bundle's grid {planner.grid.name} {tuple(planner.grid.shape)}"
-                f" over {planner.grid.range_min}..{planner.grid.range_max} differs from the run's "
-                f"grid {grid.name} {tuple(grid.shape)} over {grid.range_min}..{grid.range_max}"
+                f"planner {name}: the bundle's grid {g.name} {tuple(g.shape)} over "
+                f"{g.range_min}..{g.range_max} differs from the run's grid {grid.name} "
+                f"{tuple(grid.shape)} over {grid.range_min}..{grid.range_max}"
             )
         self.name = name
         self.planner = planner
