@@ -42,13 +42,15 @@ def summary_markdown(run: ClosedLoopRun) -> str:
     for name, s in run.summary.items():
         cells = [f"{s[k]:.3f}" for k in SCORE_KEYS] + [f"{s[k]}/{n}" for k in _COUNTS]
         lines.append(f"| {_label(run, name)} | " + " | ".join(cells) + " |")
-    beh = ["| planner | behaviour | scenes | PDMS | NC | DAC | EP | at-fault collisions |",
-           "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    keys = " | ".join(SCORE_KEYS)
+    beh = [f"| planner | behaviour | scenes | {keys} | at-fault collisions |",
+           "|---" * (len(SCORE_KEYS) + 4) + "|"]  # fmt: skip
     for name, per in run.by_behaviour.items():
         for b, s in per.items():
+            cells = " | ".join(f"{s[k]:.3f}" for k in SCORE_KEYS)
             beh.append(
-                f"| {name} | {b} | {s['episodes']} | {s['PDMS']:.3f} | {s['NC']:.3f} | "
-                f"{s['DAC']:.3f} | {s['EP']:.3f} | {s['at_fault_collisions']}/{s['episodes']} |"
+                f"| {name} | {b} | {s['episodes']} | {cells} | "
+                f"{s['at_fault_collisions']}/{s['episodes']} |"
             )
     tim = ["| planner | plans | wall s | voxelise ms/plan | plan ms/plan | simulate ms/plan |",
            "|---|---|---|---|---|---|"]  # fmt: skip
