@@ -2,10 +2,12 @@
 
     python tools/drive.py [preset=interactions] [planner=PATH/planner.pt]
         [planners=[log_replay,cv,ctr,rule_based]] [grid=coarse] [out=outputs/drive]
+        [record=scene-6000]
 
 Builds the preset's scenes (the same worlds ``tools/make_fixtures.py`` writes for that preset
 and seed), lets each planner drive each scene (:mod:`renderworld.sim.closed_loop`), prints the
-table and writes ``closed_loop.{md,csv,json}`` and ``figures/`` into ``out``. Exits with an
+table and writes ``closed_loop.{md,csv,json}``, ``figures/`` and (``record=<scene>``, needs
+rerun-sdk) a Rerun recording of that scene's episodes into ``out``. Exits with an
 error when log replay is not perfect on every scene (the runner's self-check).
 """
 
@@ -63,6 +65,18 @@ def drive(cfg: DictConfig) -> dict:
         "seconds": round(time.perf_counter() - t0, 3),
     }
     paths = write_outputs(run, worlds, Path(str(cfg.out)), settings, check)
+    if cfg.get("record"):
+        from renderworld.viewer.closed_loop import write_episode_recording
+
+        scene = str(cfg.record)
+        world = next((w for w in worlds if w.name == scene), None)
+        if world is None:
+            raise ValueError(f"record: no scene {scene!r} in preset {cfg.preset}")
+        eps = [e for e in run.episodes if e.scene == scene]
+        paths["recording"] = write_episode_recording(
+            world, eps, Path(str(cfg.out)) / f"closed_loop_{scene}.rrd"
+        )
+        print(f"Rerun recording of {scene}: {paths['recording']} (open with: rerun <file>)")
     print(summary_markdown(run))
     print(f"\nscenes built in {build_s:.1f} s; whole run {time.perf_counter() - t0:.1f} s; "
           f"outputs in {paths['md'].parent}")  # fmt: skip

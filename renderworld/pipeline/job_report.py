@@ -170,6 +170,11 @@ def _closed_loop_section(out: Path) -> list[tuple[str, str]]:
         behaviour = png.stem.removeprefix("closed_loop_")
         pictures.append(f"![closed loop: {behaviour}](figures/{png.name})")
     body = intro + table.read_text() + ("\n\n" + "\n\n".join(pictures) if pictures else "")
+    for rrd in sorted(run.glob("closed_loop_*.rrd")):
+        body += (
+            f"\n\nRerun recording of {rrd.stem.removeprefix('closed_loop_')}'s episodes (every "
+            f"planner, 10 Hz, agents and the logged path): `rerun {rrd}`"
+        )
     return [("Closed-loop driving (interaction split)", body)]
 
 

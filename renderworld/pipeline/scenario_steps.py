@@ -19,6 +19,7 @@ from renderworld.pipeline.runner import Step
 
 __all__ = [
     "CLOSED_LOOP",
+    "CLOSED_LOOP_RECORDED",
     "ScenarioData",
     "closed_loop_step",
     "interaction_eval_step",
@@ -140,10 +141,18 @@ def interaction_eval_step(
     )
 
 
+#: The interaction scene recorded for the viewer (a lead_brake scene).
+CLOSED_LOOP_RECORDED = "scene-6000"
+
+
 def closed_loop_step(bundle: Path, out: Path, repo: Path) -> Step:
     """Drive the interaction split's scenes in closed loop: the reference planners and the main
-    job's planner bundle (``tools/drive.py``; the preset's worlds, rebuilt from its seed)."""
+    job's planner bundle (``tools/drive.py``; the preset's worlds, rebuilt from its seed); with
+    rerun-sdk installed, one scene's episodes are also written as a Rerun recording."""
+    from renderworld.viewer import rerun_available
+
     conf = repo / "configs"
+    record = (f"record={CLOSED_LOOP_RECORDED}",) if rerun_available() else ()
     return Step(
         CLOSED_LOOP,
         "drive the interaction split in closed loop: log replay, CV, CTR, rule-based, world model",
@@ -154,6 +163,7 @@ def closed_loop_step(bundle: Path, out: Path, repo: Path) -> Step:
             "planners=[log_replay,cv,ctr,rule_based]",
             f"planner={bundle}",
             f"out={out / CLOSED_LOOP}",
+            *record,
         ),  # fmt: skip
         out / CLOSED_LOOP,
         depends_on=("planner",),
@@ -162,5 +172,6 @@ def closed_loop_step(bundle: Path, out: Path, repo: Path) -> Step:
             conf / "sim",
             conf / "drive.yaml",
             repo / "tools" / "drive.py",
+            repo / "renderworld" / "viewer" / "closed_loop.py",
         ),
     )

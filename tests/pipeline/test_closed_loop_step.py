@@ -27,6 +27,9 @@ def test_closed_loop_step_drives_the_interaction_split_with_the_job_bundle(tmp_p
     assert args["planners"] == "[log_replay,cv,ctr,rule_based]"
     assert step.out_dir == tmp_path / "out" / "closed_loop"
     assert REPO / "configs" / "drive.yaml" in step.inputs
+    from renderworld.viewer import rerun_available
+
+    assert args.get("record") == ("scene-6000" if rerun_available() else None)
     cfg.scenarios = False
     assert "closed_loop" not in {s.name for s in main_job_steps(cfg, REPO)}
 
@@ -44,6 +47,10 @@ def test_report_shows_the_closed_loop_table_and_one_picture_per_behaviour(tmp_pa
     text = main_job_report(cfg, out, results, 1.0).read_text()
     assert "Closed-loop driving (interaction split)" in text and "| cv | 0.125 |" in text
     assert "PDMS = NC x DAC x (5 TTC + 5 EP + 2 C) / 12" in text
+    assert "Rerun recording" not in text
+    (run / "closed_loop_scene-6000.rrd").write_bytes(b"rrd")
+    text = main_job_report(cfg, out, results, 1.0).read_text()
+    assert f"`rerun {run / 'closed_loop_scene-6000.rrd'}`" in text
     for b in ("lead_brake", "cut_in"):
         assert f"(figures/closed_loop_{b}.png)" in text
         assert (out / "figures" / f"closed_loop_{b}.png").is_file()
