@@ -6,8 +6,9 @@ Per episode (0/1 unless said), from the 10 Hz states:
   did not come from behind (:class:`~renderworld.sim.closed_loop.boxes.Contact`).
 * ``DAC`` (drivable-area compliance): 0 when a corner or edge midpoint of the ego box left the
   driveable surface.
-* ``EP`` (ego progress, in [0, 1]): arc length driven along the logged ego's path (the route)
-  over the logged ego's over the same time (start to scene end), clipped to [0, 1], rounded to
+* ``EP`` (ego progress, in [0, 1]): arc length driven along the logged ego's path (the route;
+  :func:`route_progress`: nothing counts while the ego is more than 4 m off it) over the
+  logged ego's over the same time (start to scene end, 10 Hz), clipped to [0, 1], rounded to
   1e-6; 1 when the logged ego moves less than 5 m.
 * ``TTC``: 0 when at some step, with the ego moving (> 0.1 m/s), the ego box extrapolated at
   constant velocity and heading overlaps within 1 s an object (ahead of the ego box centre)
@@ -30,7 +31,15 @@ from renderworld.sim.closed_loop.episode import Episode
 from renderworld.sim.closed_loop.kinematics import SIM_DT
 from renderworld.sim.layout import World, ego_box_at
 
-__all__ = ["COMFORT_BOUNDS", "SCORE_KEYS", "pdms", "score_episode", "aggregate"]
+__all__ = [
+    "COMFORT_BOUNDS",
+    "ROUTE_TOLERANCE",
+    "SCORE_KEYS",
+    "aggregate",
+    "pdms",
+    "route_progress",
+    "score_episode",
+]
 
 #: (low, high) of each comfort quantity (NAVSIM's bounds).
 COMFORT_BOUNDS = {
@@ -43,6 +52,8 @@ COMFORT_BOUNDS = {
 SCORE_KEYS = ("NC", "DAC", "EP", "TTC", "C", "PDMS")
 _TTC_HORIZON = 1.0
 _MIN_LOGGED_PROGRESS = 5.0
+#: Farther than this from the route (metres), the ego makes no progress along it.
+ROUTE_TOLERANCE = 4.0
 
 
 def pdms(nc: float, dac: float, ep: float, ttc: float, c: float) -> float:
@@ -50,21 +61,36 @@ def pdms(nc: float, dac: float, ep: float, ttc: float, c: float) -> float:
     return nc * dac * (5 * ttc + 5 * ep + 2 * c) / 12
 
 
-def arc_length(path: Path, xy: np.ndarray) -> float:
-    """Arc length (m) of a point [2] projected on ``path`` (nearest sample, refined)."""
-    (s,), _ = path.project(np.asarray(xy, dtype=np.float64)[None])
-    i = int(np.clip(np.searchsorted(path.s, s), 0, len(path.s) - 1))
-    h = path.heading[i]
-    d = np.asarray(xy) - path.xy[i]
-    return float(np.clip(path.s[i] + np.cos(h) * d[0] + np.sin(h) * d[1], 0.0, path.length))
+def route_progress(path: Path, xy: np.ndarray, tolerance: float = ROUTE_TOLERANCE) -> float:
+    """Arc length (m) gained along ``path`` by positions ``xy`` [N, 2] driven in order.
+
+    Each position is projected onto the path near the previous projection (within 5 m behind
+    to the distance moved + 5 m ahead; nearest 0.2 m sample, refined along its heading); a
+    position farther than ``tolerance`` from the path adds nothing (the ego left the route,
+    e.g. went straight where the route turns) and keeps the previous projection.
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    (s0,), _ = path.project(xy[:1])
+    s_prev, start = float(s0), float(s0)
+    for k in range(1, len(xy)):
+        step = float(np.hypot(*(xy[k] - xy[k - 1])))
+        win = (path.s >= s_prev - 5.0) & (path.s <= s_prev + step + 5.0)
+        idx = np.flatnonzero(win)
+        d = np.hypot(*(path.xy[idx] - xy[k]).T)
+        j = int(idx[np.argmin(d)])
+        if d.min() > tolerance:
+            continue
+        h = path.heading[j]
+        r = xy[k] - path.xy[j]
+        s_prev = float(np.clip(path.s[j] + np.cos(h) * r[0] + np.sin(h) * r[1], 0, path.length))
+    return s_prev - start
 
 
 def _progress(world: World, ep: Episode) -> tuple[float, float, float]:
     path = world.ego.path
-    traj = world.ego.trajectory
-    t0 = float(ep.times[0])
-    logged = arc_length(path, traj.pose(world.duration)[0]) - arc_length(path, traj.pose(t0)[0])
-    driven = arc_length(path, ep.states[-1, :2]) - arc_length(path, ep.states[0, :2])
+    log_xy, _ = world.ego.trajectory.pose(np.arange(ep.times[0], world.duration + 1e-9, SIM_DT))
+    logged = route_progress(path, log_xy)
+    driven = route_progress(path, ep.states[:, :2])
     if logged < _MIN_LOGGED_PROGRESS:
         return 1.0, driven, logged
     return float(np.clip(round(driven / logged, 6), 0.0, 1.0)), driven, logged
