@@ -235,3 +235,15 @@ def test_drive_tool_writes_tables_and_pictures(tmp_path):
     assert "| cv |" in md and "PDMS" in md and "voxelise ms/plan" in md
     assert (tmp_path / "closed_loop.csv").read_text().count("\n") == 5
     assert (tmp_path / "figures" / "closed_loop_lead_brake.png").stat().st_size > 10_000
+
+
+def test_progress_counts_only_along_the_route():
+    from renderworld.sim.agents import Path
+    from renderworld.sim.closed_loop.scores import route_progress
+
+    path = Path(np.array([[0.0, 0.0], [100.0, 0.0]]))
+    along = np.stack([np.linspace(0, 30, 31), np.zeros(31)], 1)
+    assert route_progress(path, along) == pytest.approx(30.0)
+    off = along.copy()
+    off[11:, 1] = 6.0  # leaves the route after 10 m: nothing more counts
+    assert route_progress(path, off) == pytest.approx(10.0)
