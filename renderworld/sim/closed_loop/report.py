@@ -103,7 +103,7 @@ def behaviour_figure(world: World, episodes: list, out_png: Path) -> Path:
         c, yy = ego_box_at(np.array([x, y]), yaw)
         _rect(ax, c, yy, EGO_HALF, color=col, lw=1.5)
         if e.end == "collision":
-            ax.plot(x, y, "x", color="red", ms=12, mew=3)
+            ax.plot(*c, "x", color="red", ms=12, mew=3)
             t_show = min(t_show, float(e.times[-1]))
     c, yy = boxes.at(t_show)
     near = (c[:, 0] > lo[0]) & (c[:, 0] < hi[0]) & (c[:, 1] > lo[1]) & (c[:, 1] < hi[1])
