@@ -155,7 +155,7 @@ def run_episode(
     for k in range(k0, n_kf - 1):
         t = k * KEYFRAME_DT
         disp, yaws = history_inputs(np.stack(hist[-h:]))
-        cmd = route_command(world, state.x, state.y, state.yaw, state.speed)
+        cmd = route_command(world, state.x, state.y, state.yaw)
         ep.commands.append(cmd)
         obs = Observation(world, t, k, (state.x, state.y, state.yaw), state.speed, disp, yaws,
                           cmd, frames[-h:])  # fmt: skip

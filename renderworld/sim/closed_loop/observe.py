@@ -8,15 +8,11 @@
   exactly as its training data were; any other grid is voxelised directly.
 * History: the ego's actual poses at the last keyframes, expressed in the current ego frame as
   the planner API expects (displacements between consecutive frames and each frame's yaw).
-* Command: where the route (the logged ego's path) goes next, as a navigation system would say
-  it. The logged pose closest to the actual ego position is found (first closest sample over
-  the scene); the look-ahead is the distance the logged ego covers in the next 3 s from there
-  (up to the scene's end), or the distance the actual ego covers in 3 s at its current speed
-  if that is longer (a logged ego that waited at a junction still tells a moving ego where the
-  route turns); the route point that far ahead, expressed in the **actual** ego frame, gives
-  the command by the datasets' rule (:func:`data_converters.trajectory.driving_command`:
-  lateral offset beyond +-2 m). Where the actual ego drives like the logged one this is the
-  datasets' command.
+* Command: where the logged ego goes next, as a navigation system would say it. The logged
+  pose closest to the actual ego position is found (first closest sample over the scene); the
+  logged positions 0.5 ... 3.0 s after it, expressed in the **actual** ego frame, give the
+  command by the datasets' rule (:func:`data_converters.trajectory.driving_command`: lateral
+  offset at 3 s beyond +-2 m; past the scene end, the last logged point before it).
 """
 
 from __future__ import annotations
@@ -91,24 +87,15 @@ def history_inputs(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.diff(local, axis=0), yaws
 
 
-def route_command(world: World, x: float, y: float, yaw: float, speed: float = 0.0) -> str:
-    """The navigation command at the actual ego pose (module docstring: how).
-
-    Args:
-        world: the scene (its logged ego path is the route).
-        x, y, yaw: the actual rear-axle pose, scene frame.
-        speed: the actual speed, m/s (sets the look-ahead when the logged ego was slower).
-    """
-    traj, path = world.ego.trajectory, world.ego.path
+def route_command(world: World, x: float, y: float, yaw: float) -> str:
+    """The navigation command at the actual ego pose (module docstring: how)."""
+    traj = world.ego.trajectory
     keep = (traj.times >= 0.0) & (traj.times <= world.duration)
     times, xy = traj.times[keep], traj.xy[keep]
     i = int(np.argmin(np.hypot(xy[:, 0] - x, xy[:, 1] - y)))
-    horizon = KEYFRAME_DT * FUTURE_FRAMES
-    t_end = min(times[i] + horizon, world.duration)
-    (s0, s1), _ = path.project(np.stack([xy[i], traj.pose(t_end)[0]]))
-    ahead = max(float(s1 - s0), float(speed) * horizon)
-    fut, _ = path.at(s0 + ahead * np.arange(1, FUTURE_FRAMES + 1) / FUTURE_FRAMES)
+    t_fut = times[i] + KEYFRAME_DT * np.arange(1, FUTURE_FRAMES + 1)
+    fut, _ = traj.pose(t_fut)
     c, s = np.cos(yaw), np.sin(yaw)
     d = fut - np.array([x, y])
     local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
-    return driving_command(local, np.ones(FUTURE_FRAMES, dtype=bool))
+    return driving_command(local, t_fut <= world.duration + 1e-9)
