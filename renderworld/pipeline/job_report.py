@@ -53,6 +53,7 @@ def main_job_report(cfg: Any, out: Path, results: list, seconds: float) -> Path:
     sections += _img2occ_section(out)
     sections += _world_model_section(out)
     sections += _interaction_section(out)
+    sections += _closed_loop_section(out)
     sections += _planner_section(out)
     sections.append(("3-D recording (Rerun)", report_section(out)))
     figures = _pictures(cfg, out)
@@ -155,6 +156,36 @@ def _interaction_section(out: Path) -> list[tuple[str, str]]:
         "someone, a trajectory that ignores the scene collides.\n\n"
     )
     return [("Interactions (held-out split; same checkpoints)", intro + table.read_text())]
+
+
+def _closed_loop_section(out: Path) -> list[tuple[str, str]]:
+    from renderworld.pipeline.scenario_steps import CLOSED_LOOP
+
+    run = out / CLOSED_LOOP
+    table = run / "closed_loop.md"
+    if not table.is_file():
+        return []
+    intro = (
+        "Each planner drives the interaction split's scenes itself (`tools/drive.py`, "
+        "docs/closed_loop.md): it plans every 0.5 s from what it sees at the pose it actually "
+        "reached, a kinematic model tracks the plan at 10 Hz, the scripted agents replay their "
+        "trajectories, and the episode ends at the scene's end, a collision or leaving the road. "
+        "PDMS = NC x DAC x (5 TTC + 5 EP + 2 C) / 12 (NAVSIM). Privileged planners read the log "
+        "or the true agent boxes: references, not competitors.\n\n"
+    )
+    pictures = []
+    for png in sorted((run / "figures").glob("closed_loop_*.png")):
+        (out / "figures").mkdir(parents=True, exist_ok=True)
+        (out / "figures" / png.name).write_bytes(png.read_bytes())
+        behaviour = png.stem.removeprefix("closed_loop_")
+        pictures.append(f"![closed loop: {behaviour}](figures/{png.name})")
+    body = intro + table.read_text() + ("\n\n" + "\n\n".join(pictures) if pictures else "")
+    for rrd in sorted(run.glob("closed_loop_*.rrd")):
+        body += (
+            f"\n\nRerun recording of {rrd.stem.removeprefix('closed_loop_')}'s episodes (every "
+            f"planner, 10 Hz, agents and the logged path): `rerun {rrd}`"
+        )
+    return [("Closed-loop driving (interaction split)", body)]
 
 
 def _planner_section(out: Path) -> list[tuple[str, str]]:

@@ -18,6 +18,7 @@ from renderworld.pipeline.runner import Step, run_steps
 from renderworld.pipeline.scenario_steps import (
     LIBRARY_INFOS,
     ScenarioData,
+    closed_loop_step,
     interaction_eval_step,
     scenario_steps,
 )
@@ -238,7 +239,7 @@ def _occupancy_steps(p: _Paths) -> list[Step]:
 def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step]:
     """World models of both settings and the one evaluation that scores them with baselines;
     with scenario data, the 3D-Occ model also trains on the library and is scored on the
-    interaction split."""
+    interaction split, open loop and (its planner bundle) in closed loop."""
     pseudo = p.out / "pseudo_labels"
     tok = (f"stage.tokenizer_ckpt={p.ckpt('tokenizer')}",)
     wm_exp, cam_exp, tok_exp = (
@@ -305,6 +306,7 @@ def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step
         steps.append(
             interaction_eval_step(scen, wm_exp, p.ckpt("tokenizer"), p.ckpt("world_model"), p.out)
         )
+        steps.append(closed_loop_step(p.out / "planner" / PLANNER_BUNDLE, p.out, p.repo))
     return steps
 
 

@@ -17,11 +17,21 @@ from pathlib import Path
 
 from renderworld.pipeline.runner import Step
 
-__all__ = ["ScenarioData", "interaction_eval_step", "preset_version", "scenario_steps"]
+__all__ = [
+    "CLOSED_LOOP",
+    "CLOSED_LOOP_RECORDED",
+    "ScenarioData",
+    "closed_loop_step",
+    "interaction_eval_step",
+    "preset_version",
+    "scenario_steps",
+]
 
 #: Step names of the scenario data (the world-model training depends on the library's).
 LIBRARY_INFOS = "scenario_infos"
 INTERACTION_INFOS = "interaction_infos"
+#: Step (and output folder) of the closed-loop evaluation on the interaction split.
+CLOSED_LOOP = "closed_loop"
 
 
 def preset_version(repo: Path, preset: str) -> str:
@@ -128,4 +138,40 @@ def interaction_eval_step(
         ),  # fmt: skip
         run,
         depends_on=("world_model", INTERACTION_INFOS),
+    )
+
+
+#: The interaction scene recorded for the viewer (a lead_brake scene).
+CLOSED_LOOP_RECORDED = "scene-6000"
+
+
+def closed_loop_step(bundle: Path, out: Path, repo: Path) -> Step:
+    """Drive the interaction split's scenes in closed loop: the reference planners and the main
+    job's planner bundle (``tools/drive.py``; the preset's worlds, rebuilt from its seed); with
+    rerun-sdk installed, one scene's episodes are also written as a Rerun recording."""
+    from renderworld.viewer import rerun_available
+
+    conf = repo / "configs"
+    record = (f"record={CLOSED_LOOP_RECORDED}",) if rerun_available() else ()
+    return Step(
+        CLOSED_LOOP,
+        "drive the interaction split in closed loop: log replay, CV, CTR, rule-based, world model",
+        (
+            sys.executable,
+            "tools/drive.py",
+            "preset=interactions",
+            "planners=[log_replay,cv,ctr,rule_based]",
+            f"planner={bundle}",
+            f"out={out / CLOSED_LOOP}",
+            *record,
+        ),  # fmt: skip
+        out / CLOSED_LOOP,
+        depends_on=("planner",),
+        inputs=(
+            repo / "renderworld" / "sim",
+            conf / "sim",
+            conf / "drive.yaml",
+            repo / "tools" / "drive.py",
+            repo / "renderworld" / "viewer" / "closed_loop.py",
+        ),
     )

@@ -24,11 +24,18 @@ __all__ = [
     "plan_ego",
     "place_static",
     "ego_trajectory",
+    "ego_box_at",
     "EGO_CENTRE_OFFSET",
 ]
 
 #: The ego box centre lies this far ahead of the rear axle (ego origin), metres.
 EGO_CENTRE_OFFSET = 1.1
+
+
+def ego_box_at(xy, yaw) -> tuple[np.ndarray, np.ndarray]:
+    """Ego box centre [..., 2] and yaw [...] of rear-axle poses ``xy`` [..., 2], ``yaw`` [...]."""
+    xy, yaw = np.asarray(xy, dtype=np.float64), np.asarray(yaw, dtype=np.float64)
+    return xy + EGO_CENTRE_OFFSET * np.stack([np.cos(yaw), np.sin(yaw)], -1), yaw
 
 
 @dataclass
@@ -62,9 +69,7 @@ class World:
 
     def ego_box(self, t) -> tuple[np.ndarray, np.ndarray]:
         """Ego box centre [..., 2] and yaw [...] at time(s) ``t``."""
-        xy, yaw = self.ego.trajectory.pose(t)
-        off = EGO_CENTRE_OFFSET * np.stack([np.cos(yaw), np.sin(yaw)], -1)
-        return xy + off, yaw
+        return ego_box_at(*self.ego.trajectory.pose(t))
 
 
 def build_roads(spec: SceneSpec, junction_x: float, rng: np.random.Generator) -> RoadNetwork:

@@ -27,56 +27,21 @@ from renderworld.sim.layout import World
 from renderworld.sim.objects import BOX, SPHERE
 from renderworld.sim.sensors import SensorRig, lidar_beams, xform
 
-__all__ = ["Voxeliser"]
+__all__ = ["SemanticVoxeliser", "Voxeliser"]
 
 _LUT = np.array([LIDARSEG_TO_OCC3D[i] for i in range(32)], dtype=np.uint8)
 _EPS = 1e-4
 
 
-class Voxeliser:
-    """Occ3D labels for one sensor rig and grid.
+class SemanticVoxeliser:
+    """Occ3D semantics of a world on one grid (no sensors: what a planner reads).
 
     Args:
-        rig: sensor calibrations.
-        azimuth_steps: LiDAR rays per beam per revolution.
-        mask_size: (w, h) of the camera depth maps used for ``mask_camera``.
         grid: the voxel grid (default Occ3D 200x200x16, 0.4 m).
     """
 
-    def __init__(self, rig: SensorRig, azimuth_steps: int, mask_size, grid: GridSpec = OCC3D_GRID):
+    def __init__(self, grid: GridSpec = OCC3D_GRID):
         self.grid = VoxelGrid(grid)
-        self.rig = rig
-        self.mask_size = mask_size
-        centres = self.grid.centres().reshape(-1, 3)
-        half = self.grid.voxel_size / 2
-        # LiDAR: nearest beam and azimuth bin of every voxel centre; covered if the beam
-        # passes within the voxel's half size.
-        q = xform(invert_pose(rig.sensor_to_ego[LIDAR_NAME]), centres)
-        r = np.linalg.norm(q, axis=1)
-        el = np.arcsin(np.clip(q[:, 2] / np.maximum(r, 1e-6), -1, 1))
-        beams = lidar_beams()
-        step = beams[1] - beams[0]
-        b = np.clip(np.round((el - beams[0]) / step), 0, 31).astype(np.int64)
-        covered = np.abs(el - beams[b]) * r <= half.max() * 1.2
-        az = np.mod(np.arctan2(q[:, 1], q[:, 0]), 2 * np.pi)
-        a = np.mod(np.round(az / (2 * np.pi / azimuth_steps)), azimuth_steps).astype(np.int64)
-        self._l_idx = np.nonzero(covered)[0]
-        self._l_flat = (b * azimuth_steps + a)[covered]
-        self._l_r = r[covered].astype(np.float32)
-        self._margin = float(np.linalg.norm(half))
-        # Cameras: pixel of every voxel centre in each depth map.
-        self._cams = []
-        w, h = mask_size
-        for ch in CAMERA_NAMES:
-            K = scale_intrinsics(rig.intrinsics[ch], w / rig.width, h / rig.height)
-            pc = xform(invert_pose(rig.sensor_to_ego[ch]), centres)
-            z = pc[:, 2]
-            zs = np.maximum(z, 1e-6)
-            u = np.floor(K[0, 0] * pc[:, 0] / zs + K[0, 2]).astype(np.int64)
-            v = np.floor(K[1, 1] * pc[:, 1] / zs + K[1, 2]).astype(np.int64)
-            ok = (z > 0.1) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-            idx = np.nonzero(ok)[0]
-            self._cams.append((idx, (v * w + u)[ok], z[ok].astype(np.float32)))
         col = self.grid.centres()[:, :, 0, :2]
         sub = (np.arange(3) - 1) * self.grid.voxel_size[0] / 3
         self._ground_xy = (col[:, :, None, None, :] + np.stack(np.meshgrid(sub, sub), -1)).reshape(
@@ -151,6 +116,52 @@ class Voxeliser:
             return
         cols = d2 <= r * r
         sem[ii[cols][:, None], jj[cols][:, None], ks[None]] = cls
+
+
+class Voxeliser(SemanticVoxeliser):
+    """Occ3D labels for one sensor rig and grid: semantics plus the LiDAR and camera masks.
+
+    Args:
+        rig: sensor calibrations.
+        azimuth_steps: LiDAR rays per beam per revolution.
+        mask_size: (w, h) of the camera depth maps used for ``mask_camera``.
+        grid: the voxel grid (default Occ3D 200x200x16, 0.4 m).
+    """
+
+    def __init__(self, rig: SensorRig, azimuth_steps: int, mask_size, grid: GridSpec = OCC3D_GRID):
+        super().__init__(grid)
+        self.rig = rig
+        self.mask_size = mask_size
+        centres = self.grid.centres().reshape(-1, 3)
+        half = self.grid.voxel_size / 2
+        # LiDAR: nearest beam and azimuth bin of every voxel centre; covered if the beam
+        # passes within the voxel's half size.
+        q = xform(invert_pose(rig.sensor_to_ego[LIDAR_NAME]), centres)
+        r = np.linalg.norm(q, axis=1)
+        el = np.arcsin(np.clip(q[:, 2] / np.maximum(r, 1e-6), -1, 1))
+        beams = lidar_beams()
+        step = beams[1] - beams[0]
+        b = np.clip(np.round((el - beams[0]) / step), 0, 31).astype(np.int64)
+        covered = np.abs(el - beams[b]) * r <= half.max() * 1.2
+        az = np.mod(np.arctan2(q[:, 1], q[:, 0]), 2 * np.pi)
+        a = np.mod(np.round(az / (2 * np.pi / azimuth_steps)), azimuth_steps).astype(np.int64)
+        self._l_idx = np.nonzero(covered)[0]
+        self._l_flat = (b * azimuth_steps + a)[covered]
+        self._l_r = r[covered].astype(np.float32)
+        self._margin = float(np.linalg.norm(half))
+        # Cameras: pixel of every voxel centre in each depth map.
+        self._cams = []
+        w, h = mask_size
+        for ch in CAMERA_NAMES:
+            K = scale_intrinsics(rig.intrinsics[ch], w / rig.width, h / rig.height)
+            pc = xform(invert_pose(rig.sensor_to_ego[ch]), centres)
+            z = pc[:, 2]
+            zs = np.maximum(z, 1e-6)
+            u = np.floor(K[0, 0] * pc[:, 0] / zs + K[0, 2]).astype(np.int64)
+            v = np.floor(K[1, 1] * pc[:, 1] / zs + K[1, 2]).astype(np.int64)
+            ok = (z > 0.1) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            idx = np.nonzero(ok)[0]
+            self._cams.append((idx, (v * w + u)[ok], z[ok].astype(np.float32)))
 
     # ------------------------------------------------------------------ masks
     def mask_lidar(self, range_image: np.ndarray, points_ego: np.ndarray | None = None):
