@@ -10,13 +10,13 @@ height layers at opacity ~0.9 and the rest at ~1e-4, i.e. the ground and what st
 solid and the air is clear, as in a trained model (Occ3D scenes are ~5-10 % occupied). Without
 that, every Gaussian starts at the initial opacity 0.1 and pruning at 1/255 removes nothing.
 
-Inputs: C = 6 cameras, images 256x704 (``--input``), LiDAR-like targets at ``--render``
-(random depth/labels on 40 % of pixels; the step's cost does not depend on their values),
-FACTS.md calibration. Each configuration runs in a fresh subprocess: median wall time over
-``--repeats`` steps after one warm-up, peak RSS growth over the process state after set-up
-(CPU), or ``torch.cuda.max_memory_allocated`` (CUDA). The rasterizer is
-``renderworld.splat.rasterize`` with ``--backend`` (default auto: gsplat on CUDA, the C++
-kernel on CPU when it builds, else the tiled torch backend); the backend used is printed.
+Inputs: C = 6 cameras, images 256x704 (``--input``), LiDAR-like targets at ``--render`` (random
+depth/labels on 40 % of pixels; the step's cost does not depend on their values), n015 calibration
+(docs/formats.md#sensors-and-calibration). Each configuration runs in a fresh subprocess: median
+wall time over ``--repeats`` steps after one warm-up, peak RSS growth over the process state after
+set-up (CPU), or ``torch.cuda.max_memory_allocated`` (CUDA). The rasterizer is
+``renderworld.splat.rasterize`` with ``--backend`` (default auto: gsplat on CUDA, the C++ kernel on
+CPU when it builds, else the tiled torch backend); the backend used is printed.
 
 Usage:
     PYTHONPATH=. python benchmarks/bench_img2occ.py [--grids coarse,occ3d] [--repeats 3]
@@ -36,7 +36,9 @@ from steptime import run_point, time_steps
 from renderworld.constants import CAMERA_NAMES, NUM_SEMANTIC_CLASSES, get_grid
 from renderworld.geometry import pose_matrix
 
-CALIB = (  # FACTS.md n015: translation, rotation [w, x, y, z], fx, cx, cy at 1600x900
+# docs/formats.md#sensors-and-calibration (n015): translation, rotation [w, x, y, z], fx, cx, cy
+# at 1600x900.
+CALIB = (
     ((1.7008, 0.0160, 1.5110), (0.49980, -0.50303, 0.49978, -0.49737), 1266.4, 816.3, 491.5),
     ((1.5509, -0.4934, 1.4958), (0.20603, -0.20269, 0.68245, -0.67136), 1260.8, 808.0, 495.3),
     ((1.5239, 0.4946, 1.5093), (0.67573, -0.67363, 0.21214, -0.21123), 1272.6, 826.6, 479.8),

@@ -5,7 +5,8 @@ ego frame), denser near the ground (z level k drawn with weight exp(-k / 4)), vo
 car left out; scales uniform in [0.1, 0.3] m, random rotations, opacities uniform in [0.05, 0.95],
 17 feature channels (the semantic classes). N = 640k is every voxel of the grid.
 
-Cameras: the six nuScenes cameras with FACTS.md calibration (vehicle n015), world = ego frame.
+Cameras: the six nuScenes cameras with the n015 calibration
+(docs/formats.md#sensors-and-calibration), world = ego frame.
 Intrinsics follow the BEVDet-style resize-then-crop: scale the 1600 x 900 image by W / 1600
 (176 -> 176 x 99, 704 -> 704 x 396) and crop the top rows (sky) to H (96 or 256), i.e.
 fx, fy, cx scale by s and cy becomes s·cy - (round(900 s) - H).
@@ -42,7 +43,8 @@ import torch
 from renderworld.constants import CAMERA_NAMES, NUM_SEMANTIC_CLASSES, OCC3D_GRID
 from renderworld.geometry import invert_pose, pose_matrix
 
-# FACTS.md: sensor->ego translation (m), rotation (w, x, y, z), fx = fy, cx, cy at 1600 x 900.
+# Vehicle n015 (docs/formats.md#sensors-and-calibration): sensor->ego translation (m), rotation
+# (w, x, y, z), fx = fy, cx, cy at 1600 x 900.
 CALIBRATION = {
     "CAM_FRONT": (
         [1.7008, 0.0160, 1.5110],

@@ -5,8 +5,8 @@ time) -> ego (the ego pose at the camera's time) -> camera (camera calibrated_se
 exactly the devkit's ``map_pointcloud_to_image`` chain; so sweeps and neighbouring keyframes are
 motion compensated through their own ego poses. Points with camera depth > ``min_depth`` that
 land in the stored image ``[0, W) x [0, H)`` label pixel ``(floor(u * sx), floor(v * sy))`` of
-the label map (``sx = W_label / W``, ``sy = H_label / H``; DESIGN.md §3), and the nearest point per
-pixel wins.
+the label map (``sx = W_label / W``, ``sy = H_label / H``; docs/conventions.md#pixels), and the
+nearest point per pixel wins.
 """
 
 from __future__ import annotations

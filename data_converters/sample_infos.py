@@ -1,4 +1,4 @@
-"""Per-keyframe info rows (batch_formats.md) from a :class:`NuScenesReader`."""
+"""Per-keyframe info rows (docs/formats.md#infos) from a :class:`NuScenesReader`."""
 
 from __future__ import annotations
 
@@ -122,7 +122,7 @@ def info_rows(
     cams: list[tuple[list[str], list[CameraView]]],
     labels2d_paths: list[str],
 ) -> list[dict]:
-    """Info rows of one scene (batch_formats.md), in frame order.
+    """Info rows of one scene (docs/formats.md#infos), in frame order.
 
     Args:
         tables: the dataset's table index.

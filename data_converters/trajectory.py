@@ -1,8 +1,8 @@
 """Ego trajectories, driving commands and GT agent boxes in the current ego frame.
 
-Planning quantities live in the **current ego frame** (DESIGN.md §3: origin rear axle, x forward,
-y left). Frame ``k``'s position is the origin of its ego pose (``ego2global`` at its LiDAR
-keyframe timestamp) expressed in the reference frame: ``(inv(E_ref) @ E_k)[:2, 3]``.
+Planning quantities live in the **current ego frame** (docs/conventions.md#frames: origin rear axle,
+x forward, y left). Frame ``k``'s position is the origin of its ego pose (``ego2global`` at its
+LiDAR keyframe timestamp) expressed in the reference frame: ``(inv(E_ref) @ E_k)[:2, 3]``.
 """
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ def ego_future(poses: np.ndarray, index: int, steps: int = FUTURE_FRAMES):
 def driving_command(
     future: np.ndarray, mask: np.ndarray, threshold: float = COMMAND_LATERAL_THRESHOLD
 ) -> str:
-    """The driving command from the GT future (DESIGN.md §3).
+    """The driving command from the GT future (docs/conventions.md#ego-motion-and-the-command).
 
     Lateral offset ``y`` of the future at 3 s (the last of the 6 steps) in the current ego frame:
     ``y >= threshold`` -> ``'left'``, ``y <= -threshold`` -> ``'right'``, else ``'straight'``.

@@ -1,7 +1,7 @@
 """Constants shared by every RenderWorld module.
 
 Class lists and maps, grid specifications, sensor names and the keyframe time step live
-here and only here (DESIGN.md §2, §3). Nothing in this module imports from the package.
+here and only here (docs/conventions.md#layout). Nothing in this module imports from the package.
 
 Frames and conventions: occupancy grids are indexed ``[x, y, z]`` in the ego frame
 (x forward, y left, z up, metres); voxel centre = ``min + (i + 0.5) * size``.
@@ -135,7 +135,8 @@ LIDARSEG_CLASSES: tuple[str, ...] = (
     "vehicle.ego",
 )
 
-#: lidarseg index -> Occ3D class id (FACTS.md). Every one of the 32 indices is present.
+#: lidarseg index -> Occ3D class id (docs/conventions.md#from-lidarseg-to-occ3d). Every one of the
+#: 32 indices is present.
 LIDARSEG_TO_OCC3D: dict[int, int] = {
     0: 0, 1: 0, 2: 7, 3: 7, 4: 7, 5: 0, 6: 7, 7: 0, 8: 0, 9: 1, 10: 0, 11: 0, 12: 8,
     13: 0, 14: 2, 15: 3, 16: 3, 17: 4, 18: 5, 19: 0, 20: 0, 21: 6, 22: 9, 23: 10,

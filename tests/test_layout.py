@@ -1,4 +1,4 @@
-"""The package's layout rules (DESIGN.md §2, §8): no import cycles, small modules."""
+"""The package's layout rules (docs/conventions.md#layout): no import cycles, small modules."""
 
 from __future__ import annotations
 

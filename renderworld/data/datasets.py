@@ -1,4 +1,4 @@
-"""Torch datasets over the converter's infos (batch_formats.md).
+"""Torch datasets over the converter's infos (docs/formats.md#dataset-items).
 
 * :class:`Img2OccDataset` — one keyframe: six resized images with their intrinsics and poses,
   LiDAR-projected depth/semantic maps at the render size, Occ3D ground truth on a grid.
@@ -40,7 +40,7 @@ def _draft_scale(w: int, h: int, w_in: int, h_in: int) -> int:
 
 
 class Img2OccDataset(InfosDataset):
-    """Keyframes for Img2Occ training (see module docstring and batch_formats.md).
+    """Keyframes for Img2Occ training (see module docstring and docs/formats.md#dataset-items).
 
     Args:
         infos: an ``infos_<split>.parquet`` path or a DataFrame from ``load_infos``.

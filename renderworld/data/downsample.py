@@ -1,7 +1,7 @@
 """Down-sampling Occ3D occupancy to coarser grids of the same range (integer factors).
 
-Rule (batch_formats.md): a coarse voxel is occupied if any of its fine voxels is non-free; its
-class is the most frequent non-free class among its fine voxels (ties -> lower id); otherwise it
+Rule (docs/conventions.md#grids): a coarse voxel is occupied if any of its fine voxels is non-free;
+its class is the most frequent non-free class among its fine voxels (ties -> lower id); otherwise it
 is free (``FREE_ID``). A coarse voxel of a mask is observed if any fine voxel is observed.
 So a one-voxel-thick road layer survives down-sampling in z, as the planner and the collision
 metric need.

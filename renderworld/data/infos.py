@@ -1,7 +1,7 @@
 """Per-keyframe infos: the columnar (parquet) table written by ``tools/create_data.py``.
 
 One row per keyframe, one file per split (``<out>/infos_<split>.parquet``); the columns are those
-of batch_formats.md. Numeric arrays are fixed-size float64 list columns (matrices row-major),
+of docs/formats.md#infos. Numeric arrays are fixed-size float64 list columns (matrices row-major),
 masks fixed-size bool lists, ``future_boxes`` a nested list (7 frames x boxes x 6 numbers
 ``[x, y, length, width, yaw, occ3d_class]`` in the keyframe's ego frame). Never pickles.
 """
@@ -45,7 +45,7 @@ def _f64(n: int) -> pa.DataType:
 
 
 def infos_schema() -> pa.Schema:
-    """The arrow schema of an infos file (column order of batch_formats.md)."""
+    """The arrow schema of an infos file (column order of docs/formats.md#infos)."""
     fields = [
         ("scene_name", pa.string()),
         ("scene_index", pa.int32()),

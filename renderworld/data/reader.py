@@ -1,7 +1,8 @@
 """A pandas reader for nuScenes-format datasets (real nuScenes or the package's simulator).
 
 No devkit, no pyquaternion. Tables load lazily, once, on first use, and their references are
-checked when they load (DESIGN.md §7: a malformed dataset fails naming file and record).
+checked when they load (docs/conventions.md#errors-and-data-safety: a malformed dataset fails naming
+file and record).
 
 Frames: ``sensor_to_ego`` is the calibrated_sensor (sensor→ego), ``ego_to_global`` the
 ego_pose (ego→global) of a sample_data record; both 4x4 float64. Quaternions [w, x, y, z].

@@ -1,4 +1,4 @@
-"""OccSequenceDataset: windows of consecutive keyframes of one scene (batch_formats.md)."""
+"""OccSequenceDataset: windows of keyframes of one scene (docs/formats.md#dataset-items)."""
 
 from __future__ import annotations
 

@@ -20,7 +20,7 @@ from renderworld.data.errors import DatasetError
 
 __all__ = ["TABLE_FIELDS", "read_table", "check_references", "check_chain"]
 
-#: Fields every record of each table must have (FACTS.md).
+#: Fields every record of each table must have (docs/formats.md#tables).
 TABLE_FIELDS: dict[str, tuple[str, ...]] = {
     "attribute": ("token", "name", "description"),
     "calibrated_sensor": ("token", "sensor_token", "translation", "rotation", "camera_intrinsic"),

@@ -1,4 +1,4 @@
-"""Geometry: poses, cameras and voxel grids (DESIGN.md §3 frames and pixel conventions)."""
+"""Geometry: poses, cameras and voxel grids (frames and pixels: docs/conventions.md)."""
 
 from renderworld.geometry.camera import (
     DEVKIT_MIN_DEPTH,

@@ -1,7 +1,7 @@
 """Pinhole cameras: projection with near-plane masking and the devkit LiDAR→image chain.
 
-Camera frame: z forward, x right, y down. Pixel convention (DESIGN.md §3): pixel (i, j)
-(column, row) covers [i, i+1) x [j, j+1); a point projected to (u, v) labels pixel
+Camera frame: z forward, x right, y down. Pixel convention (docs/conventions.md#pixels):
+pixel (i, j) (column, row) covers [i, i+1) x [j, j+1); a point projected to (u, v) labels pixel
 (floor(u), floor(v)). Resizing an image by s scales fx, fy, cx, cy by s.
 """
 

@@ -1,7 +1,7 @@
 """Voxel grids in the ego frame.
 
 A grid covers ``[range_min, range_max)`` per axis with ``shape`` voxels, indexed
-``[x, y, z]``. Voxel centre = ``range_min + (i + 0.5) * voxel_size`` (DESIGN.md §3).
+``[x, y, z]``. Voxel centre = ``range_min + (i + 0.5) * voxel_size`` (docs/conventions.md#grids).
 """
 
 from __future__ import annotations

@@ -9,8 +9,8 @@ loss (``occupancy_3d_loss``) restricted to those voxels. Rendering losses compar
 pixels only, so they leave the per-voxel opacity and class ambiguous (a half-transparent
 veil renders almost like a surface); these targets pin them where the 2-D labels say.
 
-Frames and units: camera z in metres (DESIGN.md §3), ego frame of the keyframe, voxels in
-row-major ``[x, y, z]`` order.
+Frames and units: camera z in metres (docs/conventions.md#frames), ego frame of the keyframe, voxels
+in row-major ``[x, y, z]`` order.
 """
 
 from __future__ import annotations

@@ -2,7 +2,8 @@
 
 Every accuracy knob (grid, image and render sizes, channels, views rendered per step, pruning
 threshold, adjacent-frame supervision, loss weights) is a field here, validated on
-construction with ``ValueError`` messages that name the field (DESIGN.md §6, §7).
+construction with ``ValueError`` messages that name the field
+(docs/conventions.md#errors-and-data-safety).
 """
 
 from __future__ import annotations

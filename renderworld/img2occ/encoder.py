@@ -2,7 +2,7 @@
 
 Down-sampling convolutions use kernel 4, stride 2, padding 1, so feature pixel j of a stride-s
 map is centred exactly on input coordinate (j + 0.5)·s: the pixel-area convention of
-DESIGN.md §3 survives the encoder and the lifting can scale intrinsics by 1/s.
+docs/conventions.md#pixels survives the encoder and the lifting can scale intrinsics by 1/s.
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ from renderworld.img2occ.encoder import _norm, _ResBlock
 
 __all__ = ["AnchorGaussians", "GaussianHead", "QUAT_EPS", "NUM_ENCODING_CHANNELS"]
 
-#: Epsilon inside the quaternion normalisation (DESIGN.md §5).
+#: Epsilon inside the quaternion normalisation (docs/conventions.md#numerics).
 QUAT_EPS = 1e-8
 #: Per-voxel encoding channels appended to the lifted features: seen flag, log depth,
 #: mean view direction (3), normalised voxel-centre position (3).

@@ -63,8 +63,8 @@ def lift_features(
 ) -> LiftResult:
     """Sample per-camera feature maps at the projections of voxel centres.
 
-    Pixel convention (DESIGN.md §3): feature pixel (i, j) covers [i, i+1)×[j, j+1) in the
-    coordinates of ``intrinsics``; ``grid_sample(align_corners=False)`` uses the same one.
+    Pixel convention (docs/conventions.md#pixels): feature pixel (i, j) covers [i, i+1)×[j, j+1) in
+    the coordinates of ``intrinsics``; ``grid_sample(align_corners=False)`` uses the same one.
 
     Args:
         features: [B, C, D, h, w] image features.

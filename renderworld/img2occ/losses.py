@@ -1,7 +1,7 @@
 """Img2Occ losses on rendered views: semantic NLL and Pearson depth (paper Eq. 6.6, 6.7).
 
 Both return a defined value with an autograd graph on degenerate inputs (no labelled pixels,
-constant or single-pixel depth), so a training step never sees NaN (DESIGN.md §5).
+constant or single-pixel depth), so a training step never sees NaN (docs/conventions.md#numerics).
 """
 
 from __future__ import annotations

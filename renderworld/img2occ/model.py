@@ -5,7 +5,7 @@ one Gaussian per voxel and (unless ``render=False``) renders class probabilities
 into the cameras (a random subset of them while training). ``loss(batch, output)`` compares
 those renders with the LiDAR-projected 2-D labels; ``readout(output)`` gives the 3-D
 occupancy with the threshold stored in the model's state (``occupancy_threshold`` buffer).
-Batches follow the ``Img2OccDataset`` item format (briefs/batch_formats.md), stacked on B.
+Batches follow the ``Img2OccDataset`` item format (docs/formats.md#dataset-items), stacked on B.
 """
 
 from __future__ import annotations

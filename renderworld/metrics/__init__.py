@@ -1,4 +1,4 @@
-"""Metrics (pure functions and accumulators, numpy/torch inputs; DESIGN.md §4).
+"""Metrics (pure functions and accumulators, numpy/torch inputs; docs/protocol.md).
 
 Every accumulator states its protocol in ``compute()["protocol"]`` and in ``format_table()``.
 """

@@ -1,4 +1,4 @@
-"""Ego-box collision tests on a BEV raster (planning collision rate, DESIGN.md §4).
+"""Ego-box collision tests on a BEV raster (docs/protocol.md#collision-rate).
 
 * The ego box is ``EGO_LENGTH`` x ``EGO_WIDTH`` (4.084 m x 1.85 m) **centred at the waypoint**
   (the waypoint is the ego-frame origin, i.e. the rear axle in nuScenes; centring the box there

@@ -1,11 +1,11 @@
 """Occupancy forecasting metrics at 1 s / 2 s / 3 s.
 
-Protocol (DESIGN.md §3-4, OccWorld): one confusion matrix per future step, each summed over
-the split (:mod:`renderworld.metrics.occupancy`); "1 s / 2 s / 3 s" are the values at steps
-2 / 4 / 6 (keyframes every 0.5 s), never averaged over the steps in between; the ``avg`` column
-is the plain mean of the three horizon values (as OccWorld reports it). Region: full volume by
-default, or inside a named mask. Future frames past the end of a scene (``valid`` False) are
-excluded and counted in ``skipped_frames``.
+Protocol (OccWorld; docs/protocol.md#tokenizer-reconstruction-and-forecasts): one confusion matrix
+per future step, each summed over the split (:mod:`renderworld.metrics.occupancy`);
+"1 s / 2 s / 3 s" are the values at steps 2 / 4 / 6 (keyframes every 0.5 s), never averaged over
+the steps in between; the ``avg`` column is the plain mean of the three horizon values (as
+OccWorld reports it). Region: full volume by default, or inside a named mask. Future frames past
+the end of a scene (``valid`` False) are excluded and counted in ``skipped_frames``.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Semantic occupancy metrics: confusion matrix, IoU per class, mIoU, geometry IoU.
 
-Protocol (DESIGN.md §4, Occ3D official): an 18x18 confusion matrix (rows = ground truth,
-columns = prediction) is **summed over the whole split** (never per-sample IoUs averaged);
+Protocol (docs/protocol.md#occupancy, Occ3D official): an 18x18 confusion matrix (rows = ground
+truth, columns = prediction) is **summed over the whole split** (never per-sample IoUs averaged);
 IoU_c = TP / (TP + FP + FN); mIoU = nanmean of IoU over classes 0..16 (free = 17 is excluded
 from the mean but its voxels stay in the confusion, so predicting free where an object is counts
 as a false negative of that object); a class with no GT and no prediction voxel has IoU NaN and

@@ -1,7 +1,8 @@
 """Planning metrics: L2 (two named conventions) and collision rate.
 
-Protocol (DESIGN.md §4). Trajectories are [S, 2] waypoints of frames t+1..t+S (0.5 s apart)
-in the current ego frame, metres. Error at step k = Euclidean distance of waypoint k.
+Protocol (docs/protocol.md#planning-l2, #collision-rate). Trajectories are [S, 2] waypoints of
+frames t+1..t+S (0.5 s apart) in the current ego frame, metres. Error at step k = Euclidean distance
+of waypoint k.
 
 * ``l2_at_horizon@Hs`` (UniAD; the paper's Table 6.3): mean over samples of the error at the
   horizon's step (1 s = step 2, 2 s = 4, 3 s = 6).

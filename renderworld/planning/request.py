@@ -1,6 +1,6 @@
 """Planner requests and results, and the checks every way into the planner shares.
 
-Conventions (DESIGN.md §3, VAD per-step offsets, FACTS.md):
+Conventions (docs/conventions.md#ego-motion-and-the-command, VAD per-step offsets):
 
 * ``PlanRequest.occupancy[i]`` is frame i of the history (oldest first, the last one is the
   current frame t), each in **its own** ego frame on the tokenizer's grid, Occ3D ids (17 free).

@@ -1,4 +1,4 @@
-"""Sensor rig (FACTS.md calibration of vehicle n015) and the 32-beam LiDAR.
+"""Sensor rig (vehicle n015, docs/formats.md#sensors-and-calibration) and the 32-beam LiDAR.
 
 LiDAR frame: x right, y forward, z up (nuScenes LIDAR_TOP). Camera frame: z forward, x right,
 y down. ``calibrated_sensor`` poses are sensor→ego; intrinsics are given at 1600x900 and
@@ -79,7 +79,10 @@ class SensorRig:
 
     @classmethod
     def build(cls, width: int, height: int) -> SensorRig:
-        """The FACTS.md rig with intrinsics scaled to ``width`` x ``height``."""
+        """The n015 rig (docs/formats.md#sensors-and-calibration).
+
+        Intrinsics are scaled to ``width`` x ``height``.
+        """
         if width <= 0 or height <= 0:
             raise ValueError(f"image size: expected positive width/height, got {width}x{height}")
         s2e, intr = {}, {}

@@ -1,16 +1,16 @@
 """EWA projection of 3D Gaussians into pinhole cameras, shared by the CPU backends.
 
-Camera frame: z forward, x right, y down (DESIGN.md §3). Pixel (i, j) covers [i, i+1) x [j, j+1);
-Gaussians are evaluated at pixel centres (i + 0.5, j + 0.5) — gsplat's convention, so a point
-projected to ``u = fx * x / z + cx`` lies inside pixel ``floor(u)``.
+Camera frame: z forward, x right, y down (docs/conventions.md#frames). Pixel (i, j) covers [i, i+1)
+x [j, j+1); Gaussians are evaluated at pixel centres (i + 0.5, j + 0.5) — gsplat's convention, so a
+point projected to ``u = fx * x / z + cx`` lies inside pixel ``floor(u)``.
 
 The 2D covariance is the standard EWA one, ``Σ' = J W Σ Wᵀ Jᵀ + eps2d·I``, where ``W`` is the
-world→camera rotation and ``J`` the projection Jacobian evaluated with ``x/z`` and ``y/z``
-clamped to 1.3x the field of view (off-screen Gaussians then keep a bounded footprint).
-Numerics (DESIGN.md §5): quaternions are normalised with an epsilon (a zero quaternion is the
-identity rotation, with a finite gradient), depths are clamped to the near plane before any
-division (culled Gaussians stay finite), and the 2D determinant is computed by Cauchy–Binet as a
-sum of squares, so it can never be negative.
+world→camera rotation and ``J`` the projection Jacobian evaluated with ``x/z`` and ``y/z`` clamped
+to 1.3x the field of view (off-screen Gaussians then keep a bounded footprint). Numerics
+(docs/conventions.md#numerics): quaternions are normalised with an epsilon (a zero quaternion is the
+identity rotation, with a finite gradient), depths are clamped to the near plane before any division
+(culled Gaussians stay finite), and the 2D determinant is computed by Cauchy–Binet as a sum of
+squares, so it can never be negative.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Reconstruction metrics of a tokenizer (OccWorld protocol, DESIGN.md §4).
+"""Reconstruction metrics of a tokenizer (OccWorld protocol, docs/protocol.md).
 
 An 18x18 confusion matrix (rows: ground truth, columns: prediction) is accumulated over all
 frames; per-class IoU = TP / (TP + FP + FN); mIoU is the mean over the non-air classes 0..16

@@ -1,8 +1,8 @@
 """Training and evaluation: Hydra entry points' library side, checkpoints, resume, DDP, logs.
 
-The only RenderWorld package that touches Hydra/OmegaConf objects (DESIGN.md §2). Names are
-imported lazily, so ``from renderworld.training.checkpoint import load_model_weights`` (used
-by the planner API) pulls in neither OmegaConf nor the loop.
+The only RenderWorld package that touches Hydra/OmegaConf objects (docs/conventions.md#layout).
+Names are imported lazily, so ``from renderworld.training.checkpoint import load_model_weights``
+(used by the planner API) pulls in neither OmegaConf nor the loop.
 
 Public API:
     train(cfg) -> metrics, evaluate(cfg) -> metrics            (api)

@@ -77,7 +77,7 @@ def occupancy_boxes(
 
     Args:
         occupancy: [X, Y, Z] integer Occ3D ids (0..17, ``FREE_ID`` = 17 free), ego frame,
-            indexed [x, y, z] (DESIGN.md §3).
+            indexed [x, y, z] (docs/conventions.md#grids).
         grid: its grid (default: the Occ3D-range grid of that shape).
         mask: optional [X, Y, Z] bool/{0,1}: keep only voxels where it is set (e.g. the
             camera mask).

@@ -1,4 +1,4 @@
-"""Baselines reported beside every world model (DESIGN.md §4).
+"""Baselines reported beside every world model (docs/protocol.md#baselines-and-references).
 
 * :func:`copy_paste_forecast` - every future frame is the current frame.
 * :func:`warp_constant_velocity_forecast` - the current frame resampled into each future ego

@@ -1,13 +1,14 @@
 """Configuration of the temporal world model.
 
-Conventions (DESIGN.md §3, shared with :mod:`renderworld.planning`):
+Conventions (docs/conventions.md#ego-motion-and-the-command, shared with
+:mod:`renderworld.planning`):
 
 * Frames are keyframes at 2 Hz. A window holds frames ``0..T-1``; the world model sees
   ``history_frames`` frames (t-4..t) and rolls out ``future_frames`` (t+1..t+6).
 * ``displacements[i]`` (metres, [.., 2] = (dx, dy)) is the ego motion from frame ``i`` to frame
   ``i + 1``: ``p[i + 1] - p[i]`` where ``p[k]`` is the ego origin (rear axle) of frame ``k``
   expressed in the **current** ego frame (the last history frame; x forward, y left). This is
-  VAD's per-step offset convention (FACTS.md), so the planned trajectory is exactly the
+  VAD's per-step offset convention, so the planned trajectory is exactly the
   cumulative sum of the predicted displacements. Occupancy/tokens of each frame stay in that
   frame's own ego frame (as Occ3D stores them).
 """

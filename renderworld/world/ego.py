@@ -3,12 +3,13 @@
 These pin the displacement/trajectory convention in code (see :mod:`renderworld.world.config`)
 so datasets, the planner API and the metrics compute it the same way:
 
-* positions ``p[k]`` = origin of ego frame k (rear axle; DESIGN.md §3 - VAD uses the LiDAR
-  origin instead, which differs by centimetres while turning) expressed in the **current** ego
+* positions ``p[k]`` = origin of ego frame k (rear axle; docs/conventions.md#frames - VAD uses the
+  LiDAR origin instead, which differs by centimetres while turning) expressed in the **current** ego
   frame (x forward, y left), metres;
 * ``d[i] = p[i + 1] - p[i]`` (VAD's per-step offsets); the future trajectory is
   ``p[t + 1 .. t + S]`` = cumulative sum of the future ``d``;
-* the command follows DESIGN.md §3 from the lateral offset of the last future waypoint (3 s).
+* the command follows docs/conventions.md#ego-motion-and-the-command from the lateral offset of the
+  last future waypoint (3 s).
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ def displacements_from_poses(ego_to_global, current: int) -> np.ndarray:
 
 
 def command_from_trajectory(future_positions) -> str:
-    """Driving command from the GT future (DESIGN.md §3).
+    """Driving command from the GT future (docs/conventions.md#ego-motion-and-the-command).
 
     Args:
         future_positions: [S, 2] metres, positions of frames t+1..t+S in the current ego frame;

@@ -1,11 +1,11 @@
 """Autoregressive rollout of the world model.
 
 Each step runs the model on the context window, takes the last position's argmax codes (per
-codebook) and predicted displacement, and appends them as the next frame. The **current**
-command is passed unchanged at every step: a future frame's command is never used (OccWorld
-feeds the GT future command during rollout, a leak; FACTS.md). The context keeps at most
-``config.max_frames`` frames (the training window length); with the default 5 history frames
-and 6 steps it never has to drop a frame.
+codebook) and predicted displacement, and appends them as the next frame. The **current** command is
+passed unchanged at every step: a future frame's command is never used (OccWorld feeds the GT future
+command during rollout, a leak; docs/reference_numbers.md#occworld). The context keeps at most
+``config.max_frames`` frames (the training window length); with the default 5 history frames and 6
+steps it never has to drop a frame.
 
 With ``use_cache`` (default) each step computes only the new frame, reusing the attention
 keys/values of earlier frames (:class:`renderworld.world.cache.WorldModelCache`), and the code

@@ -26,8 +26,8 @@ LIDAR_T = [0.9437, 0.0, 1.8402]
 LIDAR_Q = [0.70780, -0.00649, 0.01065, -0.70631]
 K = [[316.6, 0.0, 204.1], [0.0, 316.6, 122.9], [0.0, 0.0, 1.0]]
 IMAGE_W, IMAGE_H = 408, 245
-#: Camera calibrations of FACTS.md (vehicle n015): translation, rotation, (fx, cx, cy) at
-#: 1600x900, scaled by 1/4 for the builder's 408x245 images.
+#: Camera calibrations of vehicle n015 (docs/formats.md#sensors-and-calibration): translation,
+#: rotation, (fx, cx, cy) at 1600x900, scaled by 1/4 for the builder's 408x245 images.
 CAMERA_CALIB = {
     "CAM_FRONT": (CAM_T, CAM_Q, None),
     "CAM_FRONT_RIGHT": ([1.5509, -0.4934, 1.4958], [0.20603, -0.20269, 0.68245, -0.67136],

@@ -14,7 +14,7 @@ from renderworld.geometry import (
     transform_points,
 )
 
-# FACTS.md calibration (vehicle n015), 1600x900.
+# Vehicle n015's calibration (docs/formats.md#sensors-and-calibration), 1600x900.
 CAM_FRONT_T = [1.7008, 0.0160, 1.5110]
 CAM_FRONT_Q = [0.49980, -0.50303, 0.49978, -0.49737]
 LIDAR_T = [0.9437, 0.0, 1.8402]

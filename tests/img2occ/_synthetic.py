@@ -1,8 +1,9 @@
 """Synthetic Img2Occ samples: a ground plane, a car-sized box and a wall on a small grid.
 
-Cameras use the nuScenes n015 calibration (FACTS.md) scaled to small image sizes. Depth and
-semantic targets come from analytic ray marching through the GT voxels at pixel centres
-(DESIGN.md §3), thinned to mimic LiDAR; images are the class colours of the first hit.
+Cameras use the nuScenes n015 calibration (docs/formats.md#sensors-and-calibration) scaled to small
+image sizes. Depth and semantic targets come from analytic ray marching through the GT voxels at
+pixel centres (docs/conventions.md#pixels), thinned to mimic LiDAR; images are the class colours of
+the first hit.
 """
 
 from __future__ import annotations

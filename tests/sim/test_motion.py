@@ -19,7 +19,10 @@ from tools.make_fixtures import config_from_preset
 
 
 def commands(traj, keyframes: int) -> list[str]:
-    """DESIGN.md §3: lateral offset of the GT pose 3 s ahead in the current ego frame."""
+    """docs/conventions.md#ego-motion-and-the-command.
+
+    Lateral offset of the GT pose 3 s ahead in the current ego frame.
+    """
     out = []
     for k in range(keyframes - FUTURE_FRAMES):
         (xy0, yaw0), (xy1, _) = traj.pose(k * KEYFRAME_DT), traj.pose((k + 6) * KEYFRAME_DT)

@@ -1,4 +1,7 @@
-"""Hard cases of DESIGN.md §5: outputs and gradients finite, fast backends match the reference."""
+"""Hard cases of docs/conventions.md#numerics.
+
+Outputs and gradients finite, fast backends match the reference.
+"""
 
 import pytest
 import torch

@@ -7,11 +7,12 @@ depth-aware lifting's per-pixel depth-bin / class CE against the 2-D labels with
 ``stage.model.depth_bins > 0``); ``stage.model.supervision = 3d`` trains the same network on
 Occ3D GT voxels instead (the upper reference, ``experiment=img2occ_mini_3dgt``).
 
-Evaluation, Occ3D protocol (DESIGN.md §4): the readout (opacity > the model's stored threshold,
-class = argmax) is compared with the Occ3D ground truth on the run's grid; 18x18 confusions are
-summed over the split (and over ranks) inside the camera mask (``cam/``, Occ3D official, with
-per-class IoU), inside the LiDAR mask (``lidar/``) and on the full volume (``full/``).
-mIoU = nanmean over classes 0..16, free excluded; ``iou`` = geometry IoU (occupied vs free).
+Evaluation, Occ3D protocol (docs/protocol.md#occupancy): the readout (opacity > the model's stored
+threshold, class = argmax) is compared with the Occ3D ground truth on the run's grid; 18x18
+confusions are summed over the split (and over ranks) inside the camera mask (``cam/``, Occ3D
+official, with per-class IoU), inside the LiDAR mask (``lidar/``) and on the full volume
+(``full/``). mIoU = nanmean over classes 0..16, free excluded; ``iou`` = geometry IoU (occupied vs
+free).
 
 Readout threshold: at the end of training (rank 0) ``choose_threshold`` picks it on the TRAINING
 split (criterion ``stage.threshold.criterion``, camera mask) for the weights of ``last.pt`` and,
