@@ -4,11 +4,13 @@
 collision-vs-occupancy metric).
 
 The metrics are exactly :mod:`renderworld.metrics`': a rank accumulates counts over its shard
-(per-step forecast confusions with ``torch.bincount`` on the device, the same counts as
-:class:`~renderworld.metrics.ForecastMetric`; a :class:`~renderworld.metrics.PlanningMetric`
-per planner, flattened by :func:`planning_to_stats`) into float64 tensors the loop sums over
-ranks; ``*_from_stats`` rebuild the accumulators from the summed counts and call their
-``compute()``. Sums of counts are exact, so a sharded evaluation equals the single-process one.
+(per-step forecast confusions counted on the device by
+:func:`~renderworld.metrics.occupancy.confusion_counts`, the counting rule that
+:class:`~renderworld.metrics.ForecastMetric` uses too, label check included; a
+:class:`~renderworld.metrics.PlanningMetric` per planner, flattened by
+:func:`planning_to_stats`) into float64 tensors the loop sums over ranks; ``*_from_stats``
+rebuild the accumulators from the summed counts and call their ``compute()``. Sums of counts are
+exact, so a sharded evaluation equals the single-process one.
 
 Methods (DESIGN.md §4): ``model`` (forecast + plan), ``copy_paste`` (current frame repeated),
 ``warp_cv`` / ``warp_ctr`` (current frame warped under constant velocity / constant turn
