@@ -50,7 +50,6 @@ from renderworld.training.stages.world_model_splits import (
     turning_windows,
 )
 from renderworld.training.stages.world_model_splits import horizon_name as _hname
-from renderworld.world import frame_poses_from_poses
 
 __all__ = [
     "WorldModelWindows",
@@ -82,7 +81,7 @@ _COLL_KEYS = ("hit", "evaluated", "gt_skipped", "outside")
 
 
 class WorldModelWindows(Dataset):
-    """``OccSequenceDataset`` windows plus ``future_poses`` float32 [F, 3].
+    """``OccSequenceDataset`` windows (with GT targets in the Camera setting).
 
     ``frame_cache``: folder of the on-disk frame cache (see ``OccSequenceDataset``) or None.
 
@@ -90,9 +89,9 @@ class WorldModelWindows(Dataset):
     ``occ_target`` uint8 [T,X,Y,Z] and ``mask_camera_target`` bool [T,X,Y,Z] of the same window,
     which evaluation scores against (the "Camera" setting).
 
-    ``future_poses[k]`` = (x, y, yaw) of future frame k's ego frame in the current (last
-    history) ego frame, metres / radians: where each future GT occupancy frame lies, for the
-    collision-vs-occupancy metric.
+    The items' ``future_poses[k]`` (from ``OccSequenceDataset``) = (x, y, yaw) of future frame
+    k's ego frame in the current (last history) ego frame, metres / radians: where each future
+    GT occupancy frame lies, for the collision-vs-occupancy metric.
     """
 
     def __init__(
@@ -124,11 +123,6 @@ class WorldModelWindows(Dataset):
 
     def __getitem__(self, i: int) -> dict[str, Any]:
         item = self.seq[i]
-        seq = self.seq
-        start = int(seq.starts[int(i) % len(seq)])
-        poses = seq.ego2global[start : start + seq.history + seq.future]
-        rel = frame_poses_from_poses(poses, seq.history - 1)[seq.history :]
-        item["future_poses"] = torch.from_numpy(rel.astype("float32"))
         if self.gt is not None:
             gt = self.gt[i]
             item["occ_target"], item["mask_camera_target"] = gt["occ"], gt["mask_camera"]
