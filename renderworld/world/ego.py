@@ -19,10 +19,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from renderworld.constants import COMMAND_LATERAL_THRESHOLD
+from renderworld.constants import COMMAND_LATERAL_THRESHOLD, COMMANDS
 from renderworld.geometry.poses import frame_poses_from_poses
 
-__all__ = ["command_from_trajectory", "displacements_from_poses", "frame_poses_from_poses"]
+__all__ = [
+    "command_from_trajectory",
+    "command_indices",
+    "displacements_from_poses",
+    "frame_poses_from_poses",
+]
 
 
 def displacements_from_poses(ego_to_global, current: int) -> np.ndarray:
@@ -76,3 +81,20 @@ def command_from_trajectory(future_positions, mask=None) -> str:
     if y <= -COMMAND_LATERAL_THRESHOLD:
         return "right"
     return "straight"
+
+
+def command_indices(trajectories) -> np.ndarray:
+    """The command of each of B trajectories, as indices into ``COMMANDS``.
+
+    Args:
+        trajectories: [B, S, 2] metres, frames t+1..t+S in each window's current ego frame
+            (e.g. a constant-turn-rate extrapolation of the history: a command that reads no
+            future).
+
+    Returns:
+        [B] int64, ``COMMANDS.index(command_from_trajectory(trajectories[b]))``.
+    """
+    traj = np.asarray(trajectories, dtype=np.float64)
+    if traj.ndim != 3 or traj.shape[-1] != 2:
+        raise ValueError(f"trajectories: expected [B, S, 2], got shape {traj.shape}")
+    return np.array([COMMANDS.index(command_from_trajectory(t)) for t in traj], dtype=np.int64)

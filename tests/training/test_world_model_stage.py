@@ -256,16 +256,16 @@ def test_eval_tool_prints_the_table_and_writes_csv_and_markdown(trained, wm_over
     header = next(line for line in out.splitlines() if line.startswith("setting"))
     for col in ("method", "mIoU 1s", "mIoU 2s", "mIoU avg", "IoU avg", "L2 1s", "L2 avg", "Col 2s"):
         assert col in header
-    body = out.splitlines()[out.splitlines().index(header) + 1 :][:7]
+    body = out.splitlines()[out.splitlines().index(header) + 1 :][:8]
     assert [line.split()[:2] for line in body] == [
         ["3D-Occ", m]
-        for m in ("model", "Copy&Paste", "CV-warp", "CTR-warp", "CV-trajectory", "CTR-trajectory",
-                  "GT-pose")
+        for m in ("model", "model,", "Copy&Paste", "CV-warp", "CTR-warp", "CV-trajectory",
+                  "CTR-trajectory", "GT-pose")
     ]  # fmt: skip
     rows = {r["method"]: r for r in csv.DictReader((tmp_path / "world_model_eval.csv").open())}
     assert list(rows) == [
-        "model", "Copy&Paste", "CV-warp", "CTR-warp", "CV-trajectory", "CTR-trajectory",
-        "GT-pose warp (ref.)",
+        "model", "model, command from history", "Copy&Paste", "CV-warp", "CTR-warp",
+        "CV-trajectory", "CTR-trajectory", "GT-pose warp (ref.)",
     ]  # fmt: skip
     saved = json.loads((tmp_path / "eval_metrics.json").read_text())
     n = sum(float(rows["model"][f"{s}_windows"]) for s in ("straight", "turning"))
