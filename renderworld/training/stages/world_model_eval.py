@@ -12,11 +12,13 @@ The metrics are exactly :mod:`renderworld.metrics`': a rank accumulates counts o
 rebuild the accumulators from the summed counts and call their ``compute()``. Sums of counts are
 exact, so a sharded evaluation equals the single-process one.
 
-Methods (DESIGN.md §4): ``model`` (forecast + plan), ``copy_paste`` (current frame repeated),
-``warp_cv`` / ``warp_ctr`` (current frame warped under constant velocity / constant turn
-rate), ``cv_traj`` / ``ctr_traj`` (the same motion models as trajectories; history only) and
-the reference ``warp_gt_pose`` (current frame warped along the ground-truth future poses: reads
-the future, an upper bound for a static world).
+Methods (DESIGN.md §4): ``model`` (forecast + plan; it reads the command, which the infos derive
+from the GT future), ``model_history_command`` (the same model given the command derived from
+the constant-turn-rate extrapolation of the history instead: no input reads the future),
+``copy_paste`` (current frame repeated), ``warp_cv`` / ``warp_ctr`` (current frame warped under
+constant velocity / constant turn rate), ``cv_traj`` / ``ctr_traj`` (the same motion models as
+trajectories; history only) and the reference ``warp_gt_pose`` (current frame warped along the
+ground-truth future poses: reads the future, an upper bound for a static world).
 
 Beside the whole split, forecasts and L2 are counted on a straight / turning split of the
 windows (:func:`turning_windows`) and per class (CSV).
