@@ -1,7 +1,8 @@
 """nuScenes-format dataset -> RenderWorld infos (parquet) and LiDAR-projected 2-D labels.
 
 Entry point: :func:`create_data` (``tools/create_data.py`` wraps it). The pieces are public for
-tests and reuse: trajectories and commands (``trajectory``), LiDAR -> image label maps
+tests and reuse: trajectories (``trajectory``; the command rule is
+:func:`renderworld.world.ego.command_from_trajectory`), LiDAR -> image label maps
 (``projection``, ``labels``), scene splits (``splits``), info rows (``sample_infos``).
 """
 
@@ -17,7 +18,6 @@ from data_converters.projection import (
 from data_converters.splits import assign_splits, load_split_lists
 from data_converters.trajectory import (
     boxes_in_ego_frame,
-    driving_command,
     ego_future,
     ego_history,
     relative_positions,
@@ -33,7 +33,6 @@ __all__ = [
     "boxes_in_ego_frame",
     "create_data",
     "default_out_dir",
-    "driving_command",
     "ego_future",
     "ego_history",
     "label_maps",

@@ -11,12 +11,12 @@ from data_converters.fast_index import TableIndex
 from data_converters.projection import CameraView
 from data_converters.trajectory import (
     boxes_in_ego_frame,
-    driving_command,
     ego_future,
     ego_history,
 )
 from renderworld.constants import CAMERA_NAMES, FUTURE_FRAMES, LIDAR_NAME
 from renderworld.data import DatasetError
+from renderworld.world.ego import command_from_trajectory
 
 __all__ = ["SceneFrames", "scene_frames", "camera_views", "info_rows", "image_size", "occ_path"]
 
@@ -176,7 +176,7 @@ def info_rows(
                 "ego_history_mask": hist_mask.tolist(),
                 "ego_future": fut.reshape(-1).tolist(),
                 "ego_future_mask": fut_mask.tolist(),
-                "command": driving_command(fut, fut_mask),
+                "command": command_from_trajectory(fut, fut_mask),
                 "future_boxes": future_boxes,
             }
         )

@@ -1,4 +1,7 @@
-"""Ego trajectories, driving commands and GT agent boxes in the current ego frame.
+"""Ego trajectories and GT agent boxes in the current ego frame.
+
+The driving command of a sample is :func:`renderworld.world.ego.command_from_trajectory` of its
+GT future (one rule for the converter, the planner API and the metrics).
 
 Planning quantities live in the **current ego frame** (docs/conventions.md#frames: origin rear axle,
 x forward, y left). Frame ``k``'s position is the origin of its ego pose (``ego2global`` at its
@@ -10,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from renderworld.constants import COMMAND_LATERAL_THRESHOLD, FUTURE_FRAMES
+from renderworld.constants import FUTURE_FRAMES
 from renderworld.data.infos import BOX_FIELDS, HISTORY_STEPS
 from renderworld.geometry import invert_pose
 
@@ -18,7 +21,6 @@ __all__ = [
     "relative_positions",
     "ego_history",
     "ego_future",
-    "driving_command",
     "boxes_in_ego_frame",
 ]
 
@@ -90,41 +92,6 @@ def ego_future(poses: np.ndarray, index: int, steps: int = FUTURE_FRAMES):
         pos[: len(future)] = relative_positions(poses[index], future)
         mask[: len(future)] = True
     return pos, mask
-
-
-def driving_command(
-    future: np.ndarray, mask: np.ndarray, threshold: float = COMMAND_LATERAL_THRESHOLD
-) -> str:
-    """The driving command from the GT future (docs/conventions.md#ego-motion-and-the-command).
-
-    Lateral offset ``y`` of the future at 3 s (the last of the 6 steps) in the current ego frame:
-    ``y >= threshold`` -> ``'left'``, ``y <= -threshold`` -> ``'right'``, else ``'straight'``.
-    When the 3 s point lies past the scene end, the last valid future point is used; with no
-    valid future point at all (the scene's last keyframe) the command is ``'straight'``.
-
-    Args:
-        future: [F, 2] positions in the current ego frame (metres).
-        mask: [F] validity.
-        threshold: metres.
-
-    Returns:
-        One of ``renderworld.constants.COMMANDS``.
-    """
-    future = np.asarray(future, dtype=np.float64)
-    mask = np.asarray(mask, dtype=bool)
-    if future.ndim != 2 or future.shape[1] != 2 or mask.shape != future.shape[:1]:
-        raise ValueError(
-            f"future/mask: expected [F, 2] and [F], got {future.shape} and {mask.shape}"
-        )
-    valid = np.flatnonzero(mask)
-    if valid.size == 0:
-        return "straight"
-    y = future[valid[-1], 1]
-    if y >= threshold:
-        return "left"
-    if y <= -threshold:
-        return "right"
-    return "straight"
 
 
 def boxes_in_ego_frame(boxes: pd.DataFrame, ego_to_global: np.ndarray) -> np.ndarray:

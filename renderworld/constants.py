@@ -14,6 +14,7 @@ from dataclasses import dataclass
 __all__ = [
     "IGNORE_LABEL",
     "SIM_VERSION",
+    "REPORTED_CHECKPOINT",
     "OCC3D_CLASSES",
     "NUM_OCC3D_CLASSES",
     "NUM_SEMANTIC_CLASSES",
@@ -273,3 +274,9 @@ EGO_WIDTH: float = 1.85  # metres
 
 #: The nuScenes version folder the simulated fixtures are written as (official mini names).
 SIM_VERSION: str = "v1.0-mini"
+
+#: The checkpoint of each training run that the main job evaluates, bundles, exports and
+#: reports. ``best.pt`` is chosen on the validation split by ``trainer.monitor`` (mini_val for
+#: the demo), the split the report scores, so its figures would be selected on the data they
+#: are reported on; the schedules are fixed step counts, so ``last.pt`` is chosen by nothing.
+REPORTED_CHECKPOINT: str = "last.pt"

@@ -13,7 +13,7 @@ from renderworld.data.dataset_base import InfosDataset
 from renderworld.data.errors import DatasetError
 from renderworld.data.frame_cache import FrameCache
 from renderworld.data.infos import BOX_FIELDS
-from renderworld.geometry import invert_pose
+from renderworld.geometry.poses import frame_poses_from_poses
 
 __all__ = ["OccSequenceDataset"]
 
@@ -52,6 +52,9 @@ class OccSequenceDataset(InfosDataset):
             in the last history frame's ego frame (metres; VAD convention, as PlanRequest).
         history_poses: float32 [H,3], (x, y, yaw) of the history frames in the last history
             frame's ego frame (metres, radians; the last row is zeros).
+        future_poses: float32 [F,3], (x, y, yaw) of the future frames in that frame: where
+            each future occupancy frame lies (both from
+            :func:`renderworld.geometry.poses.frame_poses_from_poses`).
         future_traj: float32 [F,2], positions of the future frames in that frame (metres).
         future_mask: bool [F].
         command: int64, index into COMMANDS, of the last history frame.
@@ -145,15 +148,13 @@ class OccSequenceDataset(InfosDataset):
         occ, mask_cam = zip(*(self._frame_occ(r) for r in rows))
         poses = self.ego2global[rows]
         last = rows[self.history - 1]
-        # Positions of every frame in the current (last history) ego frame; displacements are
-        # their per-step differences (VAD convention, as renderworld.planning.PlanRequest), so
-        # the future trajectory is exactly the cumulative sum of the future displacements.
-        rel = invert_pose(poses[self.history - 1]) @ poses
-        pos = rel[:, :2, 3]
-        yaw = np.arctan2(rel[: self.history, 1, 0], rel[: self.history, 0, 0])
-        hist_poses = np.column_stack([pos[: self.history], yaw])
+        # (x, y, yaw) of every frame in the current (last history) ego frame; displacements are
+        # the per-step differences of the positions (VAD convention, as
+        # renderworld.planning.PlanRequest), so the future trajectory is exactly the cumulative
+        # sum of the future displacements.
+        frame = frame_poses_from_poses(poses, self.history - 1)
+        pos = frame[:, :2]
         disp = np.diff(pos, axis=0)
-        traj = pos[self.history :]
         m = self.max_boxes
         boxes = np.zeros((self.future, m, len(BOX_FIELDS)), dtype=np.float32)
         boxes_mask = np.zeros((self.future, m), dtype=bool)
@@ -166,8 +167,9 @@ class OccSequenceDataset(InfosDataset):
             "occ": torch.from_numpy(np.stack(occ)),
             "mask_camera": torch.from_numpy(np.stack(mask_cam)),
             "ego_displacements": torch.from_numpy(disp.astype(np.float32)),
-            "history_poses": torch.from_numpy(hist_poses.astype(np.float32)),
-            "future_traj": torch.from_numpy(traj.reshape(self.future, 2).astype(np.float32)),
+            "history_poses": torch.from_numpy(frame[: self.history].astype(np.float32)),
+            "future_poses": torch.from_numpy(frame[self.history :].astype(np.float32)),
+            "future_traj": torch.from_numpy(pos[self.history :].astype(np.float32)),
             "future_mask": torch.ones(self.future, dtype=torch.bool),
             "command": torch.tensor(COMMANDS.index(self.text["command"][last])),
             "future_boxes": torch.from_numpy(boxes),

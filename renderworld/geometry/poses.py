@@ -22,6 +22,7 @@ __all__ = [
     "compose",
     "transform_points",
     "yaw_of",
+    "frame_poses_from_poses",
     "QUAT_EPS",
 ]
 
@@ -147,3 +148,31 @@ def transform_points(mat, points):
 def yaw_of(mat) -> float | np.ndarray:
     """Heading (rad) of the x axis of rotation ``[..., 4, 4]`` or ``[..., 3, 3]`` about z."""
     return np.arctan2(np.asarray(mat)[..., 1, 0], np.asarray(mat)[..., 0, 0])
+
+
+def _check_ego_poses(ego_to_global, current: int) -> np.ndarray:
+    poses = np.asarray(ego_to_global, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) < 1:
+        raise ValueError(f"ego_to_global: expected [T, 4, 4] poses, got {poses.shape}")
+    if not np.isfinite(poses).all():
+        raise ValueError("ego_to_global: expected finite poses")
+    if not isinstance(current, (int, np.integer)) or not 0 <= current < len(poses):
+        raise ValueError(f"current: expected a frame index in [0, {len(poses)}), got {current!r}")
+    return poses
+
+
+def frame_poses_from_poses(ego_to_global, current: int) -> np.ndarray:
+    """(x, y, yaw) of every ego frame in the current ego frame.
+
+    Args:
+        ego_to_global: [T, 4, 4] ego->global poses of frames 0..T-1 (nuScenes ``ego_pose``).
+        current: index of the current frame t.
+
+    Returns:
+        [T, 3] float64: metres, metres, radians (row ``current`` is zeros). Usable as
+        ``occupancy_poses`` of :class:`renderworld.metrics.PlanningMetric`; the sequence
+        datasets' ``history_poses`` / ``future_poses`` are its rows.
+    """
+    poses = _check_ego_poses(ego_to_global, current)
+    rel = invert_pose(poses[current]) @ poses  # frame k -> current frame
+    return np.column_stack([rel[:, 0, 3], rel[:, 1, 3], yaw_of(rel)])

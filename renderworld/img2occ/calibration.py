@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from renderworld.constants import FREE_ID, NUM_OCC3D_CLASSES
-from renderworld.metrics.occupancy import iou_per_class, mean_iou
+from renderworld.metrics.occupancy import confusion_counts, iou_per_class, mean_iou
 
 __all__ = ["DEFAULT_OFFSETS", "ReadoutCalibration", "readout_classes"]
 
@@ -96,8 +96,8 @@ class ReadoutCalibration:
             m = torch.as_tensor(mask).reshape(-1).bool().cpu()
             op, lg, gt = op[m], lg[m], gt[m]
         live = op > self.floor
-        dead = gt[~live]
-        self.base[:, FREE_ID] += torch.bincount(dead, minlength=_N).double()
+        dead = gt[~live]  # read as free whatever the offsets and thresholds
+        self.base += confusion_counts(torch.full_like(dead, FREE_ID), dead, names=("readout", "gt"))
         self._op.append(op[live])
         self._logits.append(lg[live].float())
         self._gt.append(gt[live])
@@ -113,8 +113,7 @@ class ReadoutCalibration:
         op, lg, gt = data if data is not None else self._data()
         cls = readout_classes(lg, offsets)
         pred = torch.where(op > thresholds[cls], cls, torch.full_like(cls, FREE_ID))
-        counts = torch.bincount(gt * _N + pred, minlength=_N * _N).double().view(_N, _N)
-        return counts + self.base
+        return confusion_counts(pred, gt, names=("readout", "gt")).double() + self.base
 
     def _best_thresholds(self, offsets: torch.Tensor, data) -> torch.Tensor:
         """Per class, the candidate maximising that class's IoU for this argmax. A class

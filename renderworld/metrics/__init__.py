@@ -16,6 +16,7 @@ from renderworld.metrics.forecast import FORECAST_HORIZONS_S, ForecastMetric, ho
 from renderworld.metrics.occupancy import (
     OCCUPANCY_PROTOCOL,
     OccupancyMetric,
+    confusion_counts,
     confusion_matrix,
     geometry_iou,
     iou_per_class,
@@ -35,6 +36,7 @@ __all__ = [
     "box_cells",
     "collisions_with_boxes",
     "collisions_with_occupancy",
+    "confusion_counts",
     "confusion_matrix",
     "geometry_iou",
     "horizon_steps",

@@ -12,6 +12,8 @@ forecasting) or voxels inside a mask (e.g. the Occ3D camera mask), and is named 
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 
 from renderworld.constants import FREE_ID, NUM_OCC3D_CLASSES, OCC3D_CLASSES
@@ -19,6 +21,7 @@ from renderworld.constants import FREE_ID, NUM_OCC3D_CLASSES, OCC3D_CLASSES
 __all__ = [
     "OCCUPANCY_PROTOCOL",
     "OccupancyMetric",
+    "confusion_counts",
     "confusion_matrix",
     "geometry_iou",
     "iou_per_class",
@@ -42,44 +45,133 @@ def _to_numpy(x, name: str) -> np.ndarray:
         ) from None
 
 
-def confusion_matrix(pred, gt, mask=None, num_classes: int = NUM_OCC3D_CLASSES) -> np.ndarray:
-    """Confusion counts of one batch.
+def _torch_if_tensors(*arrays):
+    """The torch module when every given (non-None) array is a torch tensor, else None."""
+    torch = sys.modules.get("torch")
+    given = [a for a in arrays if a is not None]
+    if torch is not None and all(isinstance(a, torch.Tensor) for a in given):
+        return torch
+    return None
+
+
+def _label_range_error(arrays, names, num_classes: int) -> ValueError | None:
+    """The ValueError naming the first label array with a value outside [0, K), else None."""
+    for name, arr in zip(names, arrays):
+        if arr.size and (int(arr.min()) < 0 or int(arr.max()) >= num_classes):
+            return ValueError(
+                f"{name}: expected labels in [0, {num_classes - 1}], got "
+                f"[{int(arr.min())}, {int(arr.max())}]"
+            )
+    return None
+
+
+def confusion_counts(
+    pred,
+    gt,
+    mask=None,
+    num_classes: int = NUM_OCC3D_CLASSES,
+    *,
+    names: tuple[str, str] = ("pred", "gt"),
+):
+    """Confusion counts of one batch in the inputs' own array library.
+
+    The package's one counting rule: every confusion (metrics, tokenizer, training stages,
+    readout calibration) comes from here. Torch tensors are counted by one ``torch.bincount``
+    on their device and stay there; anything else is counted by ``np.bincount``. The label
+    check is folded into the counted index (an invalid voxel gets index -1, which bincount
+    refuses), so a CUDA batch adds no host synchronisation beyond bincount's own.
 
     Args:
         pred: [...] integer labels in [0, num_classes) (any shape, e.g. [B, X, Y, Z]).
+        gt: same shape as ``pred``.
+        mask: same shape, bool or integer 0/1; only voxels where it is true count. None = all.
+        num_classes: K (18 for Occ3D).
+        names: the names of ``pred`` and ``gt`` in the caller's signature, used in errors.
+
+    Returns:
+        [K, K] int64 (a torch tensor on the inputs' device when all inputs are tensors, else a
+        numpy array), ``out[g, p]`` = number of voxels with GT ``g`` predicted as ``p``.
+
+    Raises:
+        ValueError: shape mismatch, non-integer labels, labels outside [0, K) anywhere (masked
+            voxels included), a mask that is not bool or 0/1.
+    """
+    torch = _torch_if_tensors(pred, gt, mask)
+    if torch is None:
+        pred, gt = _to_numpy(pred, names[0]), _to_numpy(gt, names[1])
+        mask = None if mask is None else _to_numpy(mask, "mask")
+    if pred.shape != gt.shape:
+        raise ValueError(
+            f"{names[0]}: expected the shape of {names[1]} {tuple(gt.shape)}, "
+            f"got {tuple(pred.shape)}"
+        )
+    for name, arr in zip(names, (pred, gt)):
+        if not _is_integer(arr, torch):
+            raise ValueError(f"{name}: expected integer class labels, got dtype {arr.dtype}")
+    if mask is not None and (
+        tuple(mask.shape) != tuple(gt.shape)
+        or not (_is_bool(mask, torch) or _is_integer(mask, torch))
+    ):
+        raise ValueError(
+            f"mask: expected bool or 0/1 values of shape {tuple(gt.shape)}, "
+            f"got {mask.dtype} {tuple(mask.shape)}"
+        )
+    n = int(num_classes)
+    xp = np if torch is None else torch
+    p = _as_int64(pred.reshape(-1), torch)
+    g = _as_int64(gt.reshape(-1), torch)
+    invalid = (p < 0) | (p >= n) | (g < 0) | (g >= n)
+    idx = g * n + p
+    if mask is not None:
+        m = mask.reshape(-1)
+        if not _is_bool(mask, torch):
+            invalid = invalid | ((m != 0) & (m != 1))
+            m = m != 0
+        idx = xp.where(m, idx, n * n)  # masked-out voxels go to a spare bin
+    idx = xp.where(invalid, -1, idx)
+    try:
+        counts = xp.bincount(idx, minlength=n * n + 1)
+    except (RuntimeError, ValueError) as err:  # bincount refuses the -1 of an invalid voxel
+        cpu = [_to_numpy(a, nm) for a, nm in zip((pred, gt), names)]
+        range_error = _label_range_error(cpu, names, n)
+        if range_error is not None:
+            raise range_error from None
+        if mask is not None:
+            raise ValueError("mask: expected bool or 0/1 values") from None
+        raise err
+    return counts[: n * n].reshape(n, n)
+
+
+def _is_integer(arr, torch) -> bool:
+    if torch is None:
+        return np.issubdtype(arr.dtype, np.integer)
+    return not (arr.dtype.is_floating_point or arr.dtype.is_complex or arr.dtype == torch.bool)
+
+
+def _is_bool(arr, torch) -> bool:
+    return arr.dtype == (np.bool_ if torch is None else torch.bool)
+
+
+def _as_int64(arr, torch):
+    return arr.astype(np.int64, copy=False) if torch is None else arr.long()
+
+
+def confusion_matrix(pred, gt, mask=None, num_classes: int = NUM_OCC3D_CLASSES) -> np.ndarray:
+    """Confusion counts of one batch as a numpy array (see :func:`confusion_counts`).
+
+    Args:
+        pred: [...] integer labels in [0, num_classes) (numpy or torch, any shape).
         gt: same shape as ``pred``.
         mask: same shape, bool (or 0/1); only voxels where it is True count. None = all.
         num_classes: K (18 for Occ3D).
 
     Returns:
-        [K, K] int64, ``out[g, p]`` = number of voxels with GT ``g`` predicted as ``p``.
+        [K, K] int64 numpy, ``out[g, p]`` = number of voxels with GT ``g`` predicted as ``p``.
 
     Raises:
         ValueError: shape mismatch, non-integer labels, labels outside [0, K).
     """
-    p = _to_numpy(pred, "pred")
-    g = _to_numpy(gt, "gt")
-    if p.shape != g.shape:
-        raise ValueError(f"pred: expected the shape of gt {g.shape}, got {p.shape}")
-    for name, arr in (("pred", p), ("gt", g)):
-        if not np.issubdtype(arr.dtype, np.integer):
-            raise ValueError(f"{name}: expected integer class labels, got dtype {arr.dtype}")
-        if arr.size and (int(arr.min()) < 0 or int(arr.max()) >= num_classes):
-            raise ValueError(
-                f"{name}: expected labels in [0, {num_classes - 1}], got "
-                f"[{int(arr.min())}, {int(arr.max())}]"
-            )
-    if mask is not None:
-        m = _to_numpy(mask, "mask")
-        if m.shape != g.shape:
-            raise ValueError(f"mask: expected the shape of gt {g.shape}, got {m.shape}")
-        if m.dtype != np.bool_:
-            if not np.isin(m, (0, 1)).all():
-                raise ValueError("mask: expected bool or 0/1 values")
-            m = m.astype(bool)
-        p, g = p[m], g[m]
-    idx = g.astype(np.int64).ravel() * num_classes + p.astype(np.int64).ravel()
-    return np.bincount(idx, minlength=num_classes * num_classes).reshape(num_classes, num_classes)
+    return _to_numpy(confusion_counts(pred, gt, mask, num_classes), "confusion")
 
 
 def _check_confusion(confusion: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from renderworld.constants import SIM_VERSION
+from renderworld.constants import REPORTED_CHECKPOINT, SIM_VERSION
 from renderworld.pipeline.report import (
     UnreadableFile,
     load_json,
@@ -249,7 +249,7 @@ def _pictures(cfg: Any, out: Path) -> list[str]:
 
 def _bev_figure(cfg: Any, out: Path) -> Path | None:
     """GT vs tokenizer reconstruction, bird's-eye view, for one mini_val frame."""
-    ckpt = out / "tokenizer" / "checkpoints" / "best.pt"
+    ckpt = out / "tokenizer" / "checkpoints" / REPORTED_CHECKPOINT
     if not ckpt.is_file():
         return None
     import matplotlib

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from renderworld.constants import SIM_VERSION
+from renderworld.constants import REPORTED_CHECKPOINT, SIM_VERSION
 from renderworld.pipeline.job_report import PLANNER_BUNDLE, main_job_report
 from renderworld.pipeline.runner import Step, run_steps
 from renderworld.pipeline.scenario_steps import (
@@ -55,7 +55,7 @@ def _train_and_eval(
     depends_on: tuple[str, ...],
     inputs: tuple[Path, ...],
     extra: tuple[str, ...],
-    ckpt: str = "best.pt",
+    ckpt: str = REPORTED_CHECKPOINT,
     evaluate: bool = True,
 ) -> list[Step]:
     """A training step (resumable from its ``last.pt``) and the step evaluating its checkpoint.
@@ -69,7 +69,8 @@ def _train_and_eval(
         depends_on: steps the training reads.
         inputs: code and configs fingerprinted for the training step.
         extra: overrides for the training command only.
-        ckpt: the checkpoint file evaluated.
+        ckpt: the checkpoint file evaluated (``last.pt``: ``best.pt`` is chosen on the split
+            the evaluation reports, see ``REPORTED_CHECKPOINT``).
         evaluate: False: the training step only (another step evaluates its checkpoint).
     """
     py, run = sys.executable, out / name
@@ -133,7 +134,10 @@ class _Paths:
         return (conf / "stage" / f"{stage}.yaml", conf / "experiment" / f"{experiment}.yaml")
 
     def ckpt(self, step: str) -> Path:
-        return self.out / step / "checkpoints" / "best.pt"
+        # Every checkpoint a later step reads (evaluations, the next stage's training, the
+        # pseudo labels, the planner bundle, the viewer) is the run's last.pt: best.pt is
+        # picked on mini_val by trainer.monitor, and mini_val is the split the report scores.
+        return self.out / step / "checkpoints" / REPORTED_CHECKPOINT
 
 
 def main_job_steps(cfg: Any, repo: Path) -> list[Step]:

@@ -6,8 +6,8 @@ of the classes with a non-empty union (free stays in the confusion but not in th
 geometry IoU scores occupied (any non-air class) vs free. By default the full volume is scored;
 pass ``mask`` (e.g. Occ3D's camera mask) to score only those voxels and label it as such.
 
-This is a small local helper for the tokenizer's tests and fitting; the package-wide metrics
-live in ``renderworld.metrics``.
+This is a small torch-facing front for the tokenizer's tests and fitting; the counting itself
+and the package-wide metrics live in ``renderworld.metrics``.
 """
 
 from __future__ import annotations
@@ -15,25 +15,21 @@ from __future__ import annotations
 import torch
 
 from renderworld.constants import NUM_OCC3D_CLASSES
-from renderworld.metrics.occupancy import geometry_iou, iou_per_class, mean_iou
+from renderworld.metrics.occupancy import (
+    confusion_counts,
+    geometry_iou,
+    iou_per_class,
+    mean_iou,
+)
 
 __all__ = ["confusion_matrix", "metrics_from_confusion", "reconstruction_metrics", "ConfusionMeter"]
-
-
-def _check_labels(name: str, x: torch.Tensor) -> None:
-    if x.dtype.is_floating_point or x.dtype == torch.bool:
-        raise TypeError(f"{name}: expected an integer tensor of class ids, got {x.dtype}")
-    if x.numel() and (int(x.min()) < 0 or int(x.max()) >= NUM_OCC3D_CLASSES):
-        raise ValueError(
-            f"{name}: expected class ids in [0, {NUM_OCC3D_CLASSES - 1}], "
-            f"got range [{int(x.min())}, {int(x.max())}]"
-        )
 
 
 def confusion_matrix(
     pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """18x18 confusion of one batch.
+    """18x18 confusion of one batch (the package's counting rule,
+    :func:`renderworld.metrics.occupancy.confusion_counts`).
 
     Args:
         pred: [...] integer predicted Occ3D ids.
@@ -41,25 +37,13 @@ def confusion_matrix(
         mask: Optional [...] bool, voxels to score.
 
     Returns:
-        [18, 18] int64, ``conf[t, p]`` = voxels of true class t predicted as p.
+        [18, 18] int64 on the CPU, ``conf[t, p]`` = voxels of true class t predicted as p.
+
+    Raises:
+        ValueError: shape mismatch, non-integer ids, ids outside [0, 17], a mask neither bool
+            nor 0/1.
     """
-    if pred.shape != target.shape:
-        raise ValueError(
-            f"pred: expected the shape of target {tuple(target.shape)}, got {tuple(pred.shape)}"
-        )
-    _check_labels("pred", pred)
-    _check_labels("target", target)
-    p, t = pred.reshape(-1).long(), target.reshape(-1).long()
-    if mask is not None:
-        if mask.shape != target.shape or mask.dtype != torch.bool:
-            raise ValueError(
-                f"mask: expected bool of shape {tuple(target.shape)}, "
-                f"got {mask.dtype} {tuple(mask.shape)}"
-            )
-        keep = mask.reshape(-1)
-        p, t = p[keep], t[keep]
-    n = NUM_OCC3D_CLASSES
-    return torch.bincount(t * n + p, minlength=n * n).reshape(n, n).cpu()
+    return confusion_counts(pred, target, mask, names=("pred", "target")).cpu()
 
 
 def metrics_from_confusion(conf: torch.Tensor) -> dict[str, float | list[float]]:

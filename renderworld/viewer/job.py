@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from renderworld.constants import REPORTED_CHECKPOINT
 from renderworld.viewer._rerun import INSTALL_HINT, rerun_available
 
 __all__ = [
@@ -25,11 +26,11 @@ __all__ = [
 #: Where the main job's recording goes, relative to its output folder (its step's own folder).
 JOB_RECORDING = "viewer/scene.rrd"
 
-#: Checkpoints of the main job's runs, relative to its output folder.
+#: Checkpoints of the main job's runs, relative to its output folder (the ones it reports:
+#: ``last.pt``, not the ``best.pt`` chosen on the split it shows).
 JOB_CHECKPOINTS = {
-    "img2occ_ckpt": "img2occ/checkpoints/best.pt",
-    "tokenizer_ckpt": "tokenizer/checkpoints/best.pt",
-    "world_model_ckpt": "world_model/checkpoints/best.pt",
+    f"{run}_ckpt": f"{run}/checkpoints/{REPORTED_CHECKPOINT}"
+    for run in ("img2occ", "tokenizer", "world_model")
 }
 
 

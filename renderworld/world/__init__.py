@@ -14,6 +14,7 @@ from renderworld.world.baselines import (
 from renderworld.world.config import WorldModelConfig
 from renderworld.world.ego import (
     command_from_trajectory,
+    command_indices,
     displacements_from_poses,
     frame_poses_from_poses,
 )
@@ -29,6 +30,7 @@ __all__ = [
     "WorldModelOutput",
     "WorldModelTargets",
     "command_from_trajectory",
+    "command_indices",
     "constant_turn_rate_poses",
     "constant_turn_rate_trajectory",
     "constant_velocity_trajectory",

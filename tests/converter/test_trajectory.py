@@ -4,10 +4,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from data_converters import boxes_in_ego_frame, driving_command, ego_future, ego_history
+from data_converters import boxes_in_ego_frame, ego_future, ego_history
 from renderworld.data import load_infos
 from renderworld.data.infos import stack_column
 from renderworld.geometry import pose_matrix
+from renderworld.world.ego import command_from_trajectory
 from tests.converter.datasets_for_tests import build_and_convert
 from tests.data.builder import ego_pose_at
 
@@ -79,13 +80,13 @@ def test_command_thresholds_and_scene_end_rule():
     fut = np.zeros((6, 2))
     for y, cmd in ((2.0, "left"), (1.999, "straight"), (-2.0, "right"), (-1.999, "straight")):
         fut[5, 1] = y
-        assert driving_command(fut, mask) == cmd
+        assert command_from_trajectory(fut, mask) == cmd
     # Past the scene end the last valid point decides: y at step 3 is 2.5 m.
     fut = np.array([[1, 0.5], [2, 1.5], [3, 2.5], [0, 0], [0, 0], [0, 0]], float)
-    assert driving_command(fut, np.array([1, 1, 1, 0, 0, 0], bool)) == "left"
-    assert driving_command(fut, np.zeros(6, bool)) == "straight"
-    with pytest.raises(ValueError, match=r"future/mask: expected \[F, 2\] and \[F\]"):
-        driving_command(np.zeros((6, 3)), mask)
+    assert command_from_trajectory(fut, np.array([1, 1, 1, 0, 0, 0], bool)) == "left"
+    assert command_from_trajectory(fut, np.zeros(6, bool)) == "straight"
+    with pytest.raises(ValueError, match=r"future_positions: expected finite \[S, 2\]"):
+        command_from_trajectory(np.zeros((6, 3)), mask)
 
 
 def test_history_and_future_unit_cases():

@@ -227,6 +227,11 @@ def test_sequence_items_and_windows(train, left_turn):
     assert hist.shape == (3, 3)
     np.testing.assert_allclose(hist, frame_poses_from_poses(poses, current=2)[:3], atol=1e-5)
     assert hist[:2, 2].max() < 0  # a left turn: earlier headings lie to the right (yaw < 0)
+    # The future frames' poses (where each future occupancy lies): the same rule's other rows.
+    fut = item["future_poses"].numpy()
+    np.testing.assert_allclose(fut, frame_poses_from_poses(poses, current=2)[3:], atol=1e-5)
+    np.testing.assert_array_equal(fut[:, :2], item["future_traj"].numpy())
+    assert fut[:, 2].min() > 0  # still turning left: later headings lie to the left
     last = rows.iloc[2]
     np.testing.assert_allclose(
         item["future_traj"].numpy(), np.reshape(last["ego_future"], (6, 2))[:3], atol=1e-5

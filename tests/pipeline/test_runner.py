@@ -92,7 +92,7 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
         if s.command[1] == "tools/train.py":  # every training step resumes from its last.pt
             assert s.resume_marker == s.out_dir / "checkpoints" / "last.pt"
             # ... and a later step evaluates its checkpoint
-            ckpt = s.out_dir / "checkpoints" / "best.pt"
+            ckpt = s.out_dir / "checkpoints" / "last.pt"
             evals = [e for e in steps[i + 1 :] if e.command[1] == "tools/eval.py"]
             assert any(str(ckpt) in " ".join(e.command) for e in evals), s.name
     for required in ("fixtures", "infos", "tokenizer", "img2occ", "pseudo_labels"):
@@ -106,10 +106,10 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
     out = tmp_path / "out"
     args = dict(a.split("=", 1) for a in wm.command[2:])
     assert args["pseudo_labels"] == str(out / "pseudo_labels")
-    assert args["camera_ckpt"].endswith("world_model_camera/checkpoints/best.pt")
-    assert args["ckpt"].endswith("world_model/checkpoints/best.pt")
-    assert args["stage.tokenizer_ckpt"] == str(out / "tokenizer" / "checkpoints" / "best.pt")
-    cam_tok = str(out / "tokenizer_camera" / "checkpoints" / "best.pt")
+    assert args["camera_ckpt"].endswith("world_model_camera/checkpoints/last.pt")
+    assert args["ckpt"].endswith("world_model/checkpoints/last.pt")
+    assert args["stage.tokenizer_ckpt"] == str(out / "tokenizer" / "checkpoints" / "last.pt")
+    cam_tok = str(out / "tokenizer_camera" / "checkpoints" / "last.pt")
     assert args["camera_tokenizer_ckpt"] == cam_tok
     assert "world_model_camera_eval" not in names
     # The Camera setting's own tokenizer: trained on the pseudo labels, read by its world model.
@@ -127,15 +127,15 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
     assert cargs["stage.tokenizer_ckpt"] == cam_tok
     assert cargs["stage.occ_root"] == str(out / "pseudo_labels")
     gt = dict(a.split("=", 1) for a in steps[names.index("world_model")].command[2:])
-    assert gt["stage.tokenizer_ckpt"] == str(out / "tokenizer" / "checkpoints" / "best.pt")
+    assert gt["stage.tokenizer_ckpt"] == str(out / "tokenizer" / "checkpoints" / "last.pt")
     # The planner of the world model the job trained (pose_warp in world_model_mini).
     planner = steps[names.index("planner")]
     assert planner.command[1] == "tools/export_planner.py"
     assert set(planner.depends_on) == {"tokenizer", "world_model"}
     pargs = dict(a.split("=", 1) for a in planner.command[2:])
     assert pargs == {
-        "world_model_ckpt": str(out / "world_model" / "checkpoints" / "best.pt"),
-        "tokenizer_ckpt": str(out / "tokenizer" / "checkpoints" / "best.pt"),
+        "world_model_ckpt": str(out / "world_model" / "checkpoints" / "last.pt"),
+        "tokenizer_ckpt": str(out / "tokenizer" / "checkpoints" / "last.pt"),
         "out": str(out / "planner" / "planner.pt"),
     }
     # Scenario data: the library (occupancy only) feeds the 3D-Occ world model's training; the
@@ -195,3 +195,35 @@ def test_real_data_main_job_runs_the_paper_experiments_without_simulating(tmp_pa
     cfg.experiments = "huge"
     with pytest.raises(ValueError, match=r"experiments: expected one of \['mini', 'paper'\]"):
         main_job_steps(cfg, repo)
+
+
+@pytest.mark.parametrize("family", ["mini", "paper"])
+def test_no_main_job_step_reads_a_checkpoint_chosen_on_the_reported_split(
+    tmp_path, monkeypatch, family
+):
+    """best.pt is picked on the validation split the report scores: every step that reads a
+    checkpoint (evaluations, downstream training, pseudo labels, planner, viewer) reads
+    last.pt, and the report's figure reads the same file."""
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    import renderworld.viewer
+    from renderworld.pipeline.main_job import main_job_steps
+    from renderworld.viewer.job import JOB_CHECKPOINTS
+
+    monkeypatch.setattr(renderworld.viewer, "rerun_available", lambda: True)
+    repo = Path(__file__).resolve().parents[2]
+    cfg = OmegaConf.load(repo / "configs" / "pipeline.yaml")
+    cfg.out, cfg.data_root, cfg.experiments = str(tmp_path / "out"), str(tmp_path / "d"), family
+    steps = main_job_steps(cfg, repo)
+    args = [(s.name, *a.split("=", 1)) for s in steps for a in s.command[2:] if "=" in a]
+    read = [(name, value) for name, key, value in args if key.endswith("ckpt")]
+    readers = {name for name, _ in read}
+    assert {"tokenizer_eval", "img2occ_eval", "world_model_eval", "pseudo_labels"} <= readers
+    assert {"world_model", "world_model_camera", "planner"} <= readers
+    if family == "mini":
+        assert {"viewer", "world_model_interactions"} <= readers
+    assert all(v.startswith(str(tmp_path / "out")) for _, v in read), read
+    assert all(v.endswith("/checkpoints/last.pt") for _, v in read), read
+    assert all(v.endswith("/checkpoints/last.pt") for v in JOB_CHECKPOINTS.values())

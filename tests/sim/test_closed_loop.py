@@ -7,7 +7,6 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from data_converters.trajectory import driving_command
 from renderworld.constants import GRIDS, KEYFRAME_DT
 from renderworld.data.downsample import downsample_occupancy
 from renderworld.planning import load_planner, register_tokenizer, save_planner_bundle
@@ -31,6 +30,7 @@ from renderworld.sim.closed_loop.observe import pose_matrix_2d
 from renderworld.sim.layout import EGO_CENTRE_OFFSET
 from renderworld.sim.occupancy import SemanticVoxeliser
 from renderworld.world import WorldModelConfig
+from renderworld.world.ego import command_from_trajectory
 from renderworld.world.pose import PoseWarpWorldModel
 from tests.world.fake_tokenizer import PatchTokenizer, PatchTokenizerConfig
 from tools.make_fixtures import config_from_preset
@@ -196,7 +196,7 @@ def test_route_command_matches_the_dataset_rule_along_the_log():
         c, s = np.cos(yaw), np.sin(yaw)
         d = traj.pose(fut_t)[0] - np.array([x, y])
         local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
-        want.append(driving_command(local, fut_t <= world.duration + 1e-9))
+        want.append(command_from_trajectory(local, fut_t <= world.duration + 1e-9))
     moving = [traj.speed(k * KEYFRAME_DT) > 0.5 for k in range(4, 21)]
     assert [g for g, m in zip(got, moving) if m] == [w for w, m in zip(want, moving) if m]
     assert "left" in got and "straight" in got

@@ -260,16 +260,16 @@ def test_eval_tool_prints_the_table_and_writes_csv_and_markdown(trained, wm_over
     header = next(line for line in out.splitlines() if line.startswith("setting"))
     for col in ("method", "mIoU 1s", "mIoU 2s", "mIoU avg", "IoU avg", "L2 1s", "L2 avg", "Col 2s"):
         assert col in header
-    body = out.splitlines()[out.splitlines().index(header) + 1 :][:7]
+    body = out.splitlines()[out.splitlines().index(header) + 1 :][:8]
     assert [line.split()[:2] for line in body] == [
         ["3D-Occ", m]
-        for m in ("model", "Copy&Paste", "CV-warp", "CTR-warp", "CV-trajectory", "CTR-trajectory",
-                  "GT-pose")
+        for m in ("model", "model,", "Copy&Paste", "CV-warp", "CTR-warp", "CV-trajectory",
+                  "CTR-trajectory", "GT-pose")
     ]  # fmt: skip
     rows = {r["method"]: r for r in csv.DictReader((tmp_path / "world_model_eval.csv").open())}
     assert list(rows) == [
-        "model", "Copy&Paste", "CV-warp", "CTR-warp", "CV-trajectory", "CTR-trajectory",
-        "GT-pose warp (ref.)",
+        "model", "model, command from history", "Copy&Paste", "CV-warp", "CTR-warp",
+        "CV-trajectory", "CTR-trajectory", "GT-pose warp (ref.)",
     ]  # fmt: skip
     saved = json.loads((tmp_path / "eval_metrics.json").read_text())
     n = sum(float(rows["model"][f"{s}_windows"]) for s in ("straight", "turning"))
@@ -428,7 +428,7 @@ def test_one_eval_scores_both_settings_in_one_table(trained, wm_overrides, conve
     for k in scored:
         assert m[f"val/camera/{k[4:]}"] == pytest.approx(m[k], rel=1e-9, nan_ok=True), k
     rows = list(csv.DictReader((tmp_path / "a" / "world_model_eval.csv").open()))
-    assert [r["setting"] for r in rows] == ["3D-Occ"] * 7 + ["Camera"] * 7
+    assert [r["setting"] for r in rows] == ["3D-Occ"] * 8 + ["Camera"] * 8
     assert (
         "Camera = Img2Occ pseudo-label inputs"
         in (tmp_path / "a" / "world_model_eval.md").read_text()

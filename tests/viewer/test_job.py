@@ -22,7 +22,7 @@ def test_records_a_val_scene_with_the_checkpoints_the_job_has(converted, tiny_mo
     root, infos = converted
     _, tok, _ = tiny_models
     (tmp_path / "tokenizer" / "checkpoints").mkdir(parents=True)
-    tokenizer_checkpoint(tok, tmp_path / "tokenizer" / "checkpoints" / "best.pt")
+    tokenizer_checkpoint(tok, tmp_path / "tokenizer" / "checkpoints" / "last.pt")
     lines: list[str] = []
     text = job.main_job_recording(tmp_path, root, infos_dir=infos, log=lines.append)
     assert (tmp_path / "viewer" / "scene.rrd").is_file()
@@ -44,7 +44,7 @@ def test_the_job_step_writes_what_the_report_section_links(converted, tiny_model
     assert job.report_section(tmp_path).startswith("No 3-D recording: viewer/scene.rrd was not")
     _, tok, _ = tiny_models
     (tmp_path / "tokenizer" / "checkpoints").mkdir(parents=True)
-    tokenizer_checkpoint(tok, tmp_path / "tokenizer" / "checkpoints" / "best.pt")
+    tokenizer_checkpoint(tok, tmp_path / "tokenizer" / "checkpoints" / "last.pt")
     cmd = job.view_command(sys.executable, tmp_path, root)
     run = subprocess.run(
         [*cmd, f"infos_dir={infos}", "max_frames=2"], capture_output=True, text=True,
@@ -83,7 +83,7 @@ def test_the_main_job_records_after_its_trainings_only_with_rerun(monkeypatch, t
     assert step.command[1] == "tools/view.py" and args["split"] == "val"
     assert args["out"] == str(tmp_path / "out" / "viewer" / "scene.rrd")
     for run in ("img2occ", "tokenizer", "world_model"):
-        assert args[f"{run}_ckpt"] == str(tmp_path / "out" / run / "checkpoints" / "best.pt")
+        assert args[f"{run}_ckpt"] == str(tmp_path / "out" / run / "checkpoints" / "last.pt")
     monkeypatch.setattr(renderworld.viewer, "rerun_available", lambda: False)
     assert "viewer" not in [s.name for s in main_job_steps(cfg, repo)]
 

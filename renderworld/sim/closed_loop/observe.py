@@ -11,7 +11,7 @@
 * Command: where the logged ego goes next, as a navigation system would say it. The logged
   pose closest to the actual ego position is found (first closest sample over the scene); the
   logged positions 0.5 ... 3.0 s after it, expressed in the **actual** ego frame, give the
-  command by the datasets' rule (:func:`data_converters.trajectory.driving_command`: lateral
+  command by the datasets' rule (:func:`renderworld.world.ego.command_from_trajectory`: lateral
   offset at 3 s beyond +-2 m; past the scene end, the last logged point before it).
 """
 
@@ -19,11 +19,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from data_converters.trajectory import driving_command
 from renderworld.constants import FUTURE_FRAMES, KEYFRAME_DT, OCC3D_GRID, GridSpec
 from renderworld.data.downsample import downsample_occupancy, grid_factor
 from renderworld.sim.layout import World
 from renderworld.sim.occupancy import SemanticVoxeliser
+from renderworld.world.ego import command_from_trajectory
 
 __all__ = ["OccupancyRenderer", "pose_matrix_2d", "history_inputs", "route_command"]
 
@@ -98,4 +98,4 @@ def route_command(world: World, x: float, y: float, yaw: float) -> str:
     c, s = np.cos(yaw), np.sin(yaw)
     d = fut - np.array([x, y])
     local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
-    return driving_command(local, t_fut <= world.duration + 1e-9)
+    return command_from_trajectory(local, t_fut <= world.duration + 1e-9)

@@ -7,8 +7,13 @@ from typing import Any
 
 import torch
 
-from renderworld.constants import NUM_OCC3D_CLASSES, GridSpec
-from renderworld.metrics.occupancy import geometry_iou, iou_per_class, mean_iou
+from renderworld.constants import GridSpec
+from renderworld.metrics.occupancy import (
+    confusion_counts,
+    geometry_iou,
+    iou_per_class,
+    mean_iou,
+)
 from renderworld.training.config import grid_spec_from_config
 
 __all__ = ["infos_dir", "grid_of", "confusion_stats", "occupancy_metrics"]
@@ -48,13 +53,15 @@ def confusion_stats(
         pred: [...] integer Occ3D ids.
         gt: [...] integer Occ3D ids, same shape.
         mask: optional [...] bool; only True voxels count.
+
+    Returns:
+        [18, 18] float64 on the inputs' device, counted by
+        :func:`renderworld.metrics.occupancy.confusion_counts` (no host sync beyond bincount's).
+
+    Raises:
+        ValueError: as ``confusion_counts`` (labels outside [0, 17] name the argument).
     """
-    n = NUM_OCC3D_CLASSES
-    p, g = pred.reshape(-1).long(), gt.reshape(-1).long()
-    if mask is not None:
-        keep = mask.reshape(-1).bool()
-        p, g = p[keep], g[keep]
-    return torch.bincount(g * n + p, minlength=n * n).reshape(n, n).double()
+    return confusion_counts(pred, gt, mask).double()
 
 
 def occupancy_metrics(confusion: torch.Tensor, prefix: str) -> dict[str, float]:

@@ -16,7 +16,9 @@ Loss (paper Eq. 6.20, ``tokens``): token cross-entropy + ``lambda_l2`` x L2 of t
 accumulated from the last history frame (``cumulative_from = history - 1``, as a rollout plans).
 
 Evaluation (``val/``): for each window, roll out ``future`` frames from the history tokens,
-the history displacements and the **current** command; decode the forecast; forecast mIoU/IoU
+the history displacements and the **current** command (derived from the GT future; the row
+"model, command from history" gives the model the command derived from the history instead);
+decode the forecast; forecast mIoU/IoU
 per step (full volume, OccWorld protocol; and inside the camera mask, ``cam/``), planning L2
 (both conventions) and collision rates vs GT boxes and GT object occupancy, and the same for the
 baselines Copy&Paste, constant-velocity warp and constant-velocity trajectory (see
@@ -47,6 +49,7 @@ from renderworld.training.stages import world_model_pose as wmp
 from renderworld.training.stages.common import grid_of, infos_dir
 from renderworld.training.stages.world_model_bundle import TOKENIZER_KIND, export_planner_bundle
 from renderworld.training.stages.world_model_models import CheckpointModels
+from renderworld.training.stages.world_model_report import HISTORY_COMMAND
 from renderworld.training.stages.world_model_settings import (
     EvalSetting,
     eval_settings,
@@ -59,6 +62,7 @@ from renderworld.training.stages.world_model_settings import (
 )
 from renderworld.training.stages.world_model_tokens import FrozenTokenizers
 from renderworld.world import (
+    command_indices,
     constant_turn_rate_poses,
     constant_velocity_trajectory,
     copy_paste_forecast,
@@ -192,22 +196,37 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
             "cv_traj": constant_velocity_trajectory(disp[:, : h - 1], f),
             "ctr_traj": ctr[..., :2].to(disp.dtype),
         }
-        if self.forecaster == "pose_warp":
-            forecasts, traj = wmp.pose_forecast(self, model, batch, setting)
-            return {**forecasts, **baselines}, {"model": traj.to(disp.dtype), **plans}
-        if tokens is None:
-            tokens = self.window_tokens(
-                batch, h, device, setting.inputs, setting.source, setting.tokenizer
-            )
-        tok = self._tokenizer_on(device, setting.tokenizer)
-        ro = model.rollout(tokens[:, :h], disp[:, : h - 1], batch["command"].long(), steps=f)
+        # The command is derived from the GT future (as VAD / UniAD): "model, command from
+        # history" withholds it, giving the model the command the same rule derives from the
+        # constant-turn-rate extrapolation of the history (what the GT-derived one is worth).
+        held = torch.as_tensor(command_indices(ctr[..., :2].cpu().numpy()), device=device)
+        forecasts, trajs = {}, {}
+        for name, command in (("model", batch["command"].long()), (HISTORY_COMMAND, held)):
+            if self.forecaster == "pose_warp":
+                fc, traj = wmp.pose_forecast(self, model, {**batch, "command": command}, setting)
+                fc = fc if name == "model" else {name: fc["model"]}
+            else:
+                if tokens is None:
+                    tokens = self.window_tokens(
+                        batch, h, device, setting.inputs, setting.source, setting.tokenizer
+                    )
+                fc, traj = self._token_forecast(model, tokens, disp, command, setting)
+                fc = {name: fc}
+            forecasts.update(fc)
+            trajs[name] = traj.to(disp.dtype)
+        return {**forecasts, **baselines}, {**trajs, **plans}
+
+    def _token_forecast(self, model, tokens, disp, command, setting):
+        """Token-model forecast [B, S, X, Y, Z] and trajectory [B, S, 2] for one command."""
+        h, f = self.settings.history, self.settings.future
+        tok = self._tokenizer_on(disp.device, setting.tokenizer)
+        ro = model.rollout(tokens[:, :h], disp[:, : h - 1], command, steps=f)
         with autocast_off():  # the frozen tokenizer's codes in float32 on every device
             names = tok.cfg.codebook_names
             frames = [
                 tok.decode(Tokens(ro.tokens[:, k], tok.cfg.codebook_sizes, names)) for k in range(f)
             ]
-        forecasts = {"model": torch.stack(frames, dim=1), **baselines}
-        return forecasts, {"model": ro.trajectory, **plans}
+        return torch.stack(frames, dim=1), ro.trajectory
 
     def references(self, batch: dict, setting: EvalSetting) -> dict[str, torch.Tensor]:
         """Forecasts that read the future (reported as references, never as methods).

@@ -4,17 +4,22 @@
 collision-vs-occupancy metric).
 
 The metrics are exactly :mod:`renderworld.metrics`': a rank accumulates counts over its shard
-(per-step forecast confusions with ``torch.bincount`` on the device, the same counts as
-:class:`~renderworld.metrics.ForecastMetric`; a :class:`~renderworld.metrics.PlanningMetric`
-per planner, flattened by :func:`planning_to_stats`) into float64 tensors the loop sums over
-ranks; ``*_from_stats`` rebuild the accumulators from the summed counts and call their
-``compute()``. Sums of counts are exact, so a sharded evaluation equals the single-process one.
+(per-step forecast confusions counted on the device by
+:func:`~renderworld.metrics.occupancy.confusion_counts`, the counting rule that
+:class:`~renderworld.metrics.ForecastMetric` uses too, label check included; a
+:class:`~renderworld.metrics.PlanningMetric` per planner, flattened by
+:func:`planning_to_stats`) into float64 tensors the loop sums over ranks; ``*_from_stats``
+rebuild the accumulators from the summed counts and call their ``compute()``. Sums of counts are
+exact, so a sharded evaluation equals the single-process one.
 
-Methods (docs/protocol.md#baselines-and-references): ``model`` (forecast + plan), ``copy_paste``
-(current frame repeated), ``warp_cv`` / ``warp_ctr`` (current frame warped under constant velocity /
-constant turn rate), ``cv_traj`` / ``ctr_traj`` (the same motion models as trajectories; history
-only) and the reference ``warp_gt_pose`` (current frame warped along the ground-truth future poses:
-reads the future, an upper bound for a static world).
+Methods (docs/protocol.md#baselines-and-references): ``model`` (forecast + plan; it reads the
+command, which the infos derive from the GT future), ``model_history_command`` (the same model
+given the command derived from the constant-turn-rate extrapolation of the history instead: no
+input reads the future), ``copy_paste`` (current frame repeated), ``warp_cv`` / ``warp_ctr``
+(current frame warped under constant velocity / constant turn rate), ``cv_traj`` / ``ctr_traj``
+(the same motion models as trajectories; history only) and the reference ``warp_gt_pose``
+(current frame warped along the ground-truth future poses: reads the future, an upper bound for
+a static world).
 
 Beside the whole split, forecasts and L2 are counted on a straight / turning split of the
 windows (:func:`turning_windows`) and per class (CSV).
@@ -48,7 +53,6 @@ from renderworld.training.stages.world_model_splits import (
     turning_windows,
 )
 from renderworld.training.stages.world_model_splits import horizon_name as _hname
-from renderworld.world import frame_poses_from_poses
 
 __all__ = [
     "WorldModelWindows",
@@ -80,7 +84,7 @@ _COLL_KEYS = ("hit", "evaluated", "gt_skipped", "outside")
 
 
 class WorldModelWindows(Dataset):
-    """``OccSequenceDataset`` windows plus ``future_poses`` float32 [F, 3].
+    """``OccSequenceDataset`` windows (with GT targets in the Camera setting).
 
     ``frame_cache``: folder of the on-disk frame cache (see ``OccSequenceDataset``) or None.
 
@@ -88,9 +92,9 @@ class WorldModelWindows(Dataset):
     ``occ_target`` uint8 [T,X,Y,Z] and ``mask_camera_target`` bool [T,X,Y,Z] of the same window,
     which evaluation scores against (the "Camera" setting).
 
-    ``future_poses[k]`` = (x, y, yaw) of future frame k's ego frame in the current (last
-    history) ego frame, metres / radians: where each future GT occupancy frame lies, for the
-    collision-vs-occupancy metric.
+    The items' ``future_poses[k]`` (from ``OccSequenceDataset``) = (x, y, yaw) of future frame
+    k's ego frame in the current (last history) ego frame, metres / radians: where each future
+    GT occupancy frame lies, for the collision-vs-occupancy metric.
     """
 
     def __init__(
@@ -122,11 +126,6 @@ class WorldModelWindows(Dataset):
 
     def __getitem__(self, i: int) -> dict[str, Any]:
         item = self.seq[i]
-        seq = self.seq
-        start = int(seq.starts[int(i) % len(seq)])
-        poses = seq.ego2global[start : start + seq.history + seq.future]
-        rel = frame_poses_from_poses(poses, seq.history - 1)[seq.history :]
-        item["future_poses"] = torch.from_numpy(rel.astype("float32"))
         if self.gt is not None:
             gt = self.gt[i]
             item["occ_target"], item["mask_camera_target"] = gt["occ"], gt["mask_camera"]

@@ -144,11 +144,11 @@ def pose_teacher_forced(
     hist_poses, fut_poses = batch["history_poses"].float(), batch["future_poses"].float()
     valid = batch["future_mask"].bool()
     current = occ[:, h - 1]
-    yaw_w = float(stage.cfg.stage.get("pose_yaw_weight", 5.0))
-    steps = pose_step_weights(str(stage.cfg.stage.get("pose_step_weighting", "uniform")), f)
+    yaw_w = st.pose_yaw_weight
+    steps = pose_step_weights(st.pose_step_weighting, f)
     pred, _ = model.predict_poses(hist_poses, cmd, current)
     pl = pose_loss(pred, fut_poses, valid, yaw_weight=yaw_w, step_weights=steps)
-    if model.training and stage.cfg.stage.get("pose_mirror", False):
+    if model.training and st.pose_mirror:
         # The mirrored scene (y -> -y, left <-> right) is as plausible: twice the pose data.
         m_pred, _ = model.predict_poses(mirror_poses(hist_poses), mirror_command(cmd),
                                         current.flip(2))  # fmt: skip
@@ -174,9 +174,8 @@ def pose_teacher_forced(
         ce = F.cross_entropy(lg.flatten(0, 1), target[:, :, g].flatten(0, 1), reduction="none")
         ces.append((ce.mean(dim=(-2, -1)).view(b, f) * w).sum() / w.sum().clamp_min(1.0))
     token_ce = torch.stack(ces).mean()
-    lam = float(stage.cfg.stage.get("lambda_pose", 1.0))
     return {
-        "loss": token_ce + lam * pl["pose"],
+        "loss": token_ce + st.lambda_pose * pl["pose"],
         "token_ce": token_ce,
         "l2": pl["pose_l2"],
         "pose_yaw": pl["pose_yaw"],

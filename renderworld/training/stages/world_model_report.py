@@ -27,6 +27,7 @@ from renderworld.constants import FREE_ID, OCC3D_CLASSES
 from renderworld.metrics import PlanningMetric
 
 __all__ = [
+    "HISTORY_COMMAND",
     "METHODS",
     "REPORT_BASENAME",
     "REFERENCES",
@@ -38,9 +39,12 @@ __all__ = [
     "write_report",
 ]
 
+#: The model given the command derived from the history instead of the GT future.
+HISTORY_COMMAND = "model_history_command"
 #: (metric prefix, table label, has an occupancy forecast, has a trajectory)
 METHODS: tuple[tuple[str, str, bool, bool], ...] = (
     ("model", "model", True, True),
+    (HISTORY_COMMAND, "model, command from history", True, True),
     ("model_warp", "model, warp only", True, False),
     ("model_net", "model, tokens only", True, False),
     ("copy_paste", "Copy&Paste", True, False),
@@ -69,6 +73,12 @@ _LEGEND_BASELINES = (
     "rate (last displacement and last heading change repeated); both read the history only. "
     "GT-pose warp (ref.) = the current frame warped along the ground-truth future poses "
     "(x, y, yaw): it reads the future, an upper bound for a static world, not a method."
+)
+_LEGEND_COMMAND = (
+    "The model reads a driving command (left / right / straight) derived from the ground-truth "
+    "future: the lateral offset of the 3 s position, ±2 m (as VAD / UniAD); the baselines read "
+    "none. model, command from history = the same model given the command that rule derives "
+    "from the constant-turn-rate extrapolation of the history: no input reads the future."
 )
 _LEGEND_VARIANTS = (
     "model, warp only = the current frame warped along the model's predicted poses; model, "
@@ -234,6 +244,8 @@ def report_tables(
             rows.append((label, name, vals, [_value(metrics, key, c[1], c[2]) for c in csv_cols]))
     shown = [v for r in rows for v in r[2]]
     legend = [_LEGEND_BASELINES]
+    if any(r[1] == "model" for r in rows):
+        legend.append(_LEGEND_COMMAND)
     if any(r[1] == "model, warp only" for r in rows):
         legend.append(_LEGEND_VARIANTS)
     if any(v is None for v in shown):

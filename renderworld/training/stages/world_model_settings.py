@@ -38,7 +38,9 @@ __all__ = [
     "world_model_config",
     "stage_settings",
     "check_same_tokenizer",
-    "FORECASTERS",
+    "FORECASTER_KINDS",
+    "POSE_STEP_WEIGHTINGS",
+    "StageSettings",
     "build_world_model",
     "extra_train_roots",
     "forecaster_of",
@@ -151,17 +153,50 @@ def setting_header(settings: list[EvalSetting], ckpt: Any, tokenizer_ckpt: Any) 
     return "Settings: " + "; ".join(parts)
 
 
+#: ``stage.forecaster`` values: the token model and the pose-warp model.
+FORECASTER_KINDS = ("tokens", "pose_warp")
+#: ``stage.pose_step_weighting`` values (see ``world_model_pose.pose_step_weights``).
+POSE_STEP_WEIGHTINGS = ("uniform", "inverse")
+
+
 @dataclass(frozen=True)
 class StageSettings:
+    """Validated ``stage.*`` keys; the ``pose_*`` / ``lambda_pose`` ones drive ``pose_warp``."""
+
     tokenizer_ckpt: str
     history: int
     future: int
     lambda_l2: float
     cache_tokens: bool
+    lambda_pose: float = 1.0
+    pose_yaw_weight: float = 5.0
+    pose_mirror: bool = False
+    pose_anchors: str = "ctr"
+    pose_step_weighting: str = "uniform"
+
+
+def _number(s: Any, key: str, default: float) -> float:
+    value = s.get(key, default)
+    if value is None:
+        value = default
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not value >= 0:
+        raise ValueError(f"stage.{key}: expected a number >= 0, got {value!r}")
+    return float(value)
+
+
+def _choice(s: Any, key: str, default: str, allowed: tuple[str, ...]) -> str:
+    value = s.get(key) or default
+    if value not in allowed:
+        raise ValueError(f"stage.{key}: expected one of {allowed}, got {value!r}")
+    return str(value)
 
 
 def stage_settings(cfg: Any) -> StageSettings:
-    """The validated ``stage.*`` keys of a world-model run config (ValueError naming the key)."""
+    """The validated ``stage.*`` keys of a world-model run config (ValueError naming the key).
+
+    The ``pose_warp`` options are checked here too, whichever forecaster the run uses, so a bad
+    value fails when the stage is built, not at the first loss.
+    """
     s = cfg.stage
     history, future, lam = s.get("history"), s.get("future"), s.get("lambda_l2")
     if not isinstance(history, int) or isinstance(history, bool) or history < 2:
@@ -179,7 +214,21 @@ def stage_settings(cfg: Any) -> StageSettings:
             "stage.tokenizer_ckpt: required; pass the tokenizer run's checkpoint, e.g. "
             "stage.tokenizer_ckpt=outputs/train/tokenizer/<time>/checkpoints/best.pt"
         )
-    return StageSettings(str(ckpt), history, future, float(lam), bool(s.get("cache_tokens", True)))
+    mirror = s.get("pose_mirror", False)
+    if not isinstance(mirror, bool):
+        raise ValueError(f"stage.pose_mirror: expected true or false, got {mirror!r}")
+    return StageSettings(
+        str(ckpt),
+        history,
+        future,
+        float(lam),
+        bool(s.get("cache_tokens", True)),
+        lambda_pose=_number(s, "lambda_pose", 1.0),
+        pose_yaw_weight=_number(s, "pose_yaw_weight", 5.0),
+        pose_mirror=mirror,
+        pose_anchors=_choice(s, "pose_anchors", "ctr", ANCHORS),
+        pose_step_weighting=_choice(s, "pose_step_weighting", "uniform", POSE_STEP_WEIGHTINGS),
+    )
 
 
 def world_model_config(cfg: Any, tokenizer_cfg: Any) -> WorldModelConfig:
@@ -226,15 +275,9 @@ def check_same_tokenizer(trained_cfg: Any, tokenizer_ckpt, key: str = "tokenizer
         )
 
 
-FORECASTERS = ("tokens", "pose_warp")
-
-
 def forecaster_of(cfg: Any) -> str:
     """``stage.forecaster`` of a run config (absent: ``"tokens"``, the original world model)."""
-    kind = cfg.stage.get("forecaster") or "tokens"
-    if kind not in FORECASTERS:
-        raise ValueError(f"stage.forecaster: expected one of {FORECASTERS}, got {kind!r}")
-    return str(kind)
+    return _choice(cfg.stage, "forecaster", "tokens", FORECASTER_KINDS)
 
 
 def build_world_model(
@@ -242,13 +285,12 @@ def build_world_model(
 ) -> WorldModel | PoseWarpWorldModel:
     """:class:`WorldModel` (``"tokens"``) or :class:`PoseWarpWorldModel` (``"pose_warp"``).
 
-    ``cfg``: the run config whose ``stage.pose_anchors`` (default ``"ctr"``) the pose head uses.
+    ``cfg``: the run config whose ``stage.pose_anchors`` (default ``"ctr"``) the pose head uses
+    (validated by :func:`stage_settings`).
     """
     if kind != "pose_warp":
         return WorldModel(config)
-    anchors = "ctr" if cfg is None else str(cfg.stage.get("pose_anchors") or "ctr")
-    if anchors not in ANCHORS:
-        raise ValueError(f"stage.pose_anchors: expected one of {ANCHORS}, got {anchors!r}")
+    anchors = "ctr" if cfg is None else stage_settings(cfg).pose_anchors
     return PoseWarpWorldModel(config, anchors=anchors)
 
 

@@ -1,0 +1,66 @@
+"""The world model's stage settings: every option is checked when the stage is built."""
+
+from __future__ import annotations
+
+import pytest
+
+from renderworld.training.stages.world_model import WorldModelStage
+from renderworld.training.stages.world_model_settings import (
+    FORECASTER_KINDS,
+    POSE_STEP_WEIGHTINGS,
+    build_world_model,
+    stage_settings,
+    world_model_config,
+)
+from renderworld.world.pose import ANCHORS
+
+from .conftest import compose_cfg
+
+BASE = ["stage=world_model", "stage.tokenizer_ckpt=tok.pt"]
+
+
+@pytest.mark.parametrize(
+    "override, option",
+    [
+        ("stage.pose_yaw_weight=-1", "stage.pose_yaw_weight"),
+        ("stage.pose_yaw_weight=heavy", "stage.pose_yaw_weight"),
+        ("stage.lambda_pose=-0.5", "stage.lambda_pose"),
+        ("stage.pose_mirror=maybe", "stage.pose_mirror"),
+        ("stage.pose_anchors=cv", "stage.pose_anchors"),
+        ("stage.pose_step_weighting=log", "stage.pose_step_weighting"),
+    ],
+)
+@pytest.mark.parametrize("forecaster", FORECASTER_KINDS)
+def test_a_bad_pose_option_fails_when_the_stage_is_built(override, option, forecaster):
+    cfg = compose_cfg([*BASE, f"stage.forecaster={forecaster}", override])
+    with pytest.raises(ValueError, match=f"^{option}: expected"):
+        stage_settings(cfg)
+    with pytest.raises(ValueError, match=f"^{option}: expected"):
+        WorldModelStage(cfg)
+
+
+def test_the_pose_options_reach_the_settings():
+    cfg = compose_cfg(
+        [
+            *BASE,
+            "stage.forecaster=pose_warp",
+            "stage.pose_yaw_weight=2.5",
+            "stage.lambda_pose=0.25",
+            "stage.pose_mirror=true",
+            "stage.pose_anchors=ctr_cv",
+            "stage.pose_step_weighting=inverse",
+        ]
+    )
+    st = WorldModelStage(cfg).settings
+    assert (st.pose_yaw_weight, st.lambda_pose, st.pose_mirror) == (2.5, 0.25, True)
+    assert (st.pose_anchors, st.pose_step_weighting) == ("ctr_cv", "inverse")
+    assert set(ANCHORS) >= {"ctr", "ctr_cv"} and POSE_STEP_WEIGHTINGS == ("uniform", "inverse")
+
+
+def test_the_built_pose_model_uses_the_configured_anchors():
+    from types import SimpleNamespace
+
+    cfg = compose_cfg([*BASE, "stage.forecaster=pose_warp", "stage.pose_anchors=ctr_cv"])
+    tok = SimpleNamespace(codebook_sizes=(16,), latent_shape=(4, 4))
+    model = build_world_model("pose_warp", world_model_config(cfg, tok), cfg)
+    assert model.pose.anchors == "ctr_cv"
