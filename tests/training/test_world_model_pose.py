@@ -42,7 +42,8 @@ def test_changing_the_future_ground_truth_leaves_the_forecast_unchanged(wm_overr
     setting = stage.eval_settings[0]
     fc, traj = stage.forecast(model, batch, setting, None)
     fc2, traj2 = stage.forecast(model, perturb_future(batch, HISTORY), setting, None)
-    for k in ("model", "model_warp", "model_net", "copy_paste", "warp_cv", "warp_ctr"):
+    for k in ("model", "model_warp", "model_net", "copy_paste", "warp_cv", "warp_ctr",
+              "warp_object_cv"):  # fmt: skip
         assert torch.equal(fc[k], fc2[k]), k
     for k in ("model", "cv_traj", "ctr_traj"):
         assert torch.equal(traj[k], traj2[k]), k
