@@ -3,9 +3,11 @@
 The error of a future frame is the absolute wrapped difference between the planned and the
 ground-truth ego heading (yaw, current ego frame), in degrees [0, 180]. Frames past the end of
 a scene are left out. Accumulation is by counts that add over shards: per step a histogram of
-the errors in bins of :data:`HEADING_BIN_DEG` degrees, the sum of the errors and their number.
+the errors (:data:`HEADING_EDGES_DEG`: bins of :data:`HEADING_BIN_DEG` degrees up to
+:data:`HEADING_FINE_MAX_DEG`, of 0.1 degree above), the sum of the errors and their number.
 The mean is exact; the median takes the centre of its bin (of each of the two middle ranks'
-bins for an even count), so it is exact to half of ``HEADING_BIN_DEG``.
+bins for an even count), so below ``HEADING_FINE_MAX_DEG`` it is exact to half of
+``HEADING_BIN_DEG``.
 """
 
 from __future__ import annotations
@@ -17,15 +19,26 @@ from renderworld.metrics.occupancy import _to_numpy
 __all__ = [
     "HEADING_BIN_DEG",
     "HEADING_BINS",
+    "HEADING_EDGES_DEG",
+    "HEADING_FINE_MAX_DEG",
     "heading_error_deg",
     "heading_counts",
     "heading_from_counts",
 ]
 
-#: Width of a histogram bin, degrees (the median's resolution).
-HEADING_BIN_DEG = 0.01
-#: Number of histogram bins covering [0, 180] degrees.
-HEADING_BINS = int(round(180.0 / HEADING_BIN_DEG))
+#: Width of a histogram bin below ``HEADING_FINE_MAX_DEG``, degrees (the median's resolution).
+HEADING_BIN_DEG = 0.001
+#: Errors up to this many degrees fall in the fine bins; above it bins are 0.1 degree wide.
+HEADING_FINE_MAX_DEG = 20.0
+#: Bin edges, degrees, from 0 to 180 (the last bin also holds 180).
+HEADING_EDGES_DEG = np.concatenate(
+    [
+        np.arange(round(HEADING_FINE_MAX_DEG / HEADING_BIN_DEG)) * HEADING_BIN_DEG,
+        HEADING_FINE_MAX_DEG + np.arange(round((180.0 - HEADING_FINE_MAX_DEG) / 0.1) + 1) * 0.1,
+    ]
+)
+#: Number of histogram bins.
+HEADING_BINS = len(HEADING_EDGES_DEG) - 1
 
 
 def heading_error_deg(pred_yaw, gt_yaw) -> np.ndarray:
@@ -62,7 +75,7 @@ def heading_counts(pred_yaw, gt_yaw, valid) -> tuple[np.ndarray, np.ndarray, np.
     v = _to_numpy(valid, "valid").astype(bool)
     if err.ndim != 2 or v.shape != err.shape:
         raise ValueError(f"valid: expected bool [B, S] like the yaws {err.shape}, got {v.shape}")
-    idx = np.minimum((err / HEADING_BIN_DEG).astype(np.int64), HEADING_BINS - 1)
+    idx = np.clip(np.searchsorted(HEADING_EDGES_DEG, err, side="right") - 1, 0, HEADING_BINS - 1)
     steps = err.shape[1]
     hist = np.zeros((steps, HEADING_BINS))
     for s in range(steps):
@@ -95,6 +108,7 @@ def heading_from_counts(hist, err_sum, count, horizon_steps) -> dict[str, list[f
         # The median's two middle ranks (the same one for an odd count), each at its bin centre.
         ranks = (np.floor((total + 1) / 2), np.ceil((total + 1) / 2))
         bins = [int(np.searchsorted(cum, r - 0.5)) for r in ranks]
-        med.append(float(np.mean([(b + 0.5) * HEADING_BIN_DEG for b in bins])))
+        centres = [(HEADING_EDGES_DEG[b] + HEADING_EDGES_DEG[b + 1]) / 2 for b in bins]
+        med.append(float(np.mean(centres)))
         mean.append(float(s[k - 1] / total))
     return {"median": med, "mean": mean}

@@ -42,5 +42,15 @@ def test_even_count_median_is_the_mean_of_the_two_middle_errors():
     hist, total, count = heading_counts(np.radians([[1.0], [9.0]]), gt, np.ones((2, 1), bool))
     res = heading_from_counts(hist, total, count, (1,))
     assert res["median"][0] == pytest.approx(5.0, abs=HEADING_BIN_DEG)
+    # Straight driving: a zero error is reported as zero to the reported 0.01 degree.
+    hist, total, count = heading_counts(
+        np.zeros((3, 1)), gt[:1].repeat(3, 0), np.ones((3, 1), bool)
+    )
+    assert heading_from_counts(hist, total, count, (1,))["median"][0] < 0.005
+    # Large errors land in the coarse bins (0.1 degree) and still count.
+    hist, total, count = heading_counts(np.radians([[120.0]]), gt[:1], np.ones((1, 1), bool))
+    assert heading_from_counts(hist, total, count, (1,))["median"][0] == pytest.approx(
+        120.0, abs=0.05
+    )
     empty = heading_from_counts(hist * 0, total * 0, count * 0, (1,))
     assert math.isnan(empty["median"][0]) and math.isnan(empty["mean"][0])
