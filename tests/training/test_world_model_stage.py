@@ -446,7 +446,7 @@ def test_one_eval_scores_both_settings_in_one_table(trained, wm_overrides, conve
     for k in scored:
         assert m[f"val/camera/{k[4:]}"] == pytest.approx(m[k], rel=1e-9, nan_ok=True), k
     rows = list(csv.DictReader((tmp_path / "a" / "world_model_eval.csv").open()))
-    assert [r["setting"] for r in rows] == ["3D-Occ"] * 7 + ["Camera"] * 7
+    assert [r["setting"] for r in rows] == ["3D-Occ"] * 9 + ["Camera"] * 9
     assert (
         "Camera = Img2Occ pseudo-label inputs"
         in (tmp_path / "a" / "world_model_eval.md").read_text()
