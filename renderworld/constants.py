@@ -21,6 +21,7 @@ __all__ = [
     "FREE_ID",
     "OTHERS_ID",
     "OBJECT_CLASS_IDS",
+    "MOVABLE_CLASS_IDS",
     "OCC3D_COLORS",
     "LIDARSEG_CLASSES",
     "LIDARSEG_TO_OCC3D",
@@ -75,6 +76,23 @@ OTHERS_ID: int = OCC3D_CLASSES.index("others")  # 0
 IGNORE_LABEL: int = 255
 #: Object classes used by the occupancy collision metric (barrier .. truck).
 OBJECT_CLASS_IDS: tuple[int, ...] = tuple(range(1, 11))
+#: Classes of road users that can move (car, truck, bus, trailer, construction_vehicle,
+#: pedestrian, bicycle, motorcycle): the "movers" of the forecast metrics and baselines.
+MOVABLE_CLASS_IDS: tuple[int, ...] = tuple(
+    sorted(
+        OCC3D_CLASSES.index(c)
+        for c in (
+            "car",
+            "truck",
+            "bus",
+            "trailer",
+            "construction_vehicle",
+            "pedestrian",
+            "bicycle",
+            "motorcycle",
+        )  # fmt: skip
+    )
+)
 
 #: RGB colours (uint8) per Occ3D class, in class order; free is white.
 OCC3D_COLORS: tuple[tuple[int, int, int], ...] = (

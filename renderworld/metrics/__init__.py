@@ -12,7 +12,13 @@ from renderworld.metrics.collision import (
     rasterize_boxes,
     trajectory_headings,
 )
-from renderworld.metrics.forecast import FORECAST_HORIZONS_S, ForecastMetric, horizon_steps
+from renderworld.metrics.forecast import (
+    FORECAST_HORIZONS_S,
+    ForecastMetric,
+    horizon_steps,
+    movers_miou,
+)
+from renderworld.metrics.heading import heading_counts, heading_error_deg, heading_from_counts
 from renderworld.metrics.occupancy import (
     OCCUPANCY_PROTOCOL,
     OccupancyMetric,
@@ -39,7 +45,11 @@ __all__ = [
     "confusion_counts",
     "confusion_matrix",
     "geometry_iou",
+    "heading_counts",
+    "heading_error_deg",
+    "heading_from_counts",
     "horizon_steps",
+    "movers_miou",
     "iou_per_class",
     "l2_errors",
     "mean_iou",

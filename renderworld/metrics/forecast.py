@@ -12,12 +12,40 @@ from __future__ import annotations
 
 import numpy as np
 
-from renderworld.constants import FUTURE_FRAMES, KEYFRAME_DT
-from renderworld.metrics.occupancy import OCCUPANCY_PROTOCOL, OccupancyMetric, _to_numpy
+from renderworld.constants import FUTURE_FRAMES, KEYFRAME_DT, MOVABLE_CLASS_IDS
+from renderworld.metrics.occupancy import (
+    OCCUPANCY_PROTOCOL,
+    OccupancyMetric,
+    _to_numpy,
+    iou_per_class,
+)
 
-__all__ = ["FORECAST_HORIZONS_S", "ForecastMetric", "checked_horizons", "horizon_steps"]
+__all__ = [
+    "FORECAST_HORIZONS_S",
+    "ForecastMetric",
+    "checked_horizons",
+    "horizon_steps",
+    "movers_miou",
+]
 
 FORECAST_HORIZONS_S: tuple[float, ...] = (1.0, 2.0, 3.0)
+
+
+def movers_miou(confusion) -> float:
+    """Movers' mIoU: nanmean of the IoU of the movable classes (``MOVABLE_CLASS_IDS``).
+
+    Read off the same confusion as the mIoU (a class with no GT and no prediction voxel is
+    left out of the mean, as in :func:`~renderworld.metrics.occupancy.mean_iou`).
+
+    Args:
+        confusion: [18, 18] counts, rows = ground truth.
+
+    Returns:
+        The mean as a fraction, NaN when no movable class is present.
+    """
+    iou = iou_per_class(confusion)[list(MOVABLE_CLASS_IDS)]
+    present = ~np.isnan(iou)
+    return float(iou[present].mean()) if present.any() else float("nan")
 
 
 def horizon_steps(horizons_s=FORECAST_HORIZONS_S, dt: float = KEYFRAME_DT) -> tuple[int, ...]:
@@ -120,12 +148,17 @@ class ForecastMetric:
 
         Returns:
             dict with ``miou@1s``, ``miou@2s``, ``miou@3s``, ``miou_avg``, ``iou@1s`` ...
-            ``iou_avg`` (geometry IoU), ``miou_per_step`` / ``iou_per_step`` lists (S),
+            ``iou_avg`` (geometry IoU), ``movers_miou@1s`` ... ``movers_miou_avg``
+            (:func:`movers_miou`), ``miou_per_step`` / ``iou_per_step`` /
+            ``movers_miou_per_step`` lists (S),
             ``skipped_frames``, ``region``, ``protocol``.
         """
         res = [m.compute() for m in self.per_step]
+        for r, m in zip(res, self.per_step):
+            r["movers_miou"] = movers_miou(m.confusion)
         out: dict = {}
-        for key, name in (("miou", "miou"), ("iou_geometry", "iou")):
+        names = (("miou", "miou"), ("iou_geometry", "iou"), ("movers_miou", "movers_miou"))
+        for key, name in names:
             vals = [res[k - 1][key] for k in self.horizon_steps]
             for h, val in zip(self.horizons_s, vals):
                 out[f"{name}@{h:g}s"] = val

@@ -20,6 +20,7 @@ from renderworld.world.ego import (
 )
 from renderworld.world.loss import WorldModelTargets, teacher_forcing_split, world_model_loss
 from renderworld.world.model import WorldModel, WorldModelCache, WorldModelOutput, ego_features
+from renderworld.world.movers import gt_movers_reference, object_constant_velocity_forecast
 from renderworld.world.rollout import RolloutOutput, rollout
 
 __all__ = [
@@ -38,6 +39,8 @@ __all__ = [
     "displacements_from_poses",
     "ego_features",
     "frame_poses_from_poses",
+    "gt_movers_reference",
+    "object_constant_velocity_forecast",
     "rollout",
     "teacher_forcing_split",
     "warp_along_poses",

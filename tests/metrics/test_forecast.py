@@ -5,6 +5,7 @@ import pytest
 
 from renderworld.constants import FREE_ID
 from renderworld.metrics import ForecastMetric, horizon_steps
+from renderworld.metrics.forecast import movers_miou
 
 
 def test_horizon_steps():
@@ -65,3 +66,23 @@ def test_masked_forecast_and_validation():
         ForecastMetric().update(pred[:5], gt[:5])
     with pytest.raises(ValueError, match="valid: expected bool"):
         ForecastMetric().update(pred, gt, valid=np.ones(6, dtype=int))
+
+
+def test_movers_miou_is_the_mean_over_the_movable_classes_of_the_same_confusion():
+    gt = np.full((6, 4, 4, 2), FREE_ID, dtype=np.uint8)
+    gt[:, 0, 0, 0] = gt[:, 0, 1, 0] = 4  # car, 2 voxels
+    gt[:, 3, 3, 0] = 7  # pedestrian
+    gt[:, 2, :, 0] = 11  # road (not a mover)
+    gt[:, 1, 3, 0] = 1  # barrier (an object, not a mover)
+    pred = gt.copy()
+    pred[:, 0, 1, 0] = FREE_ID  # car IoU 1/2
+    pred[:, 3, 3, 0] = 8  # pedestrian missed (IoU 0), a traffic cone instead
+    pred[:, 1, 3, 0] = FREE_ID  # barrier missed: the mIoU sees it, the movers' mIoU does not
+    m = ForecastMetric()
+    m.update(pred, gt)
+    r = m.compute()
+    assert r["movers_miou@1s"] == pytest.approx((0.5 + 0.0) / 2)  # car, pedestrian; others absent
+    assert r["miou@1s"] == pytest.approx((0.5 + 0 + 1 + 0 + 0) / 5)  # + road, barrier, cone
+    assert r["movers_miou_per_step"] == [pytest.approx(0.25)] * 6
+    assert movers_miou(m.per_step[0].confusion) == pytest.approx(0.25)
+    assert math.isnan(movers_miou(np.zeros((18, 18), dtype=np.int64)))

@@ -40,9 +40,14 @@ def test_changing_the_future_ground_truth_leaves_the_forecast_unchanged(wm_overr
     stage, model, val_set = _stage(wm_overrides, tmp_path)
     batch = next(iter(DataLoader(val_set, batch_size=2)))
     setting = stage.eval_settings[0]
-    fc, traj = stage.forecast(model, batch, setting, None)
-    fc2, traj2 = stage.forecast(model, perturb_future(batch, HISTORY), setting, None)
-    for k in ("model", "model_warp", "model_net", "copy_paste", "warp_cv", "warp_ctr"):
+    yaw, yaw2 = {}, {}
+    fc, traj = stage.forecast(model, batch, setting, None, yaw)
+    fc2, traj2 = stage.forecast(model, perturb_future(batch, HISTORY), setting, None, yaw2)
+    assert set(yaw) == set(yaw2) == {"model", "cv_traj", "ctr_traj"}
+    for k in yaw:  # the planned headings scored beside L2
+        assert torch.equal(yaw[k], yaw2[k]), k
+    for k in ("model", "model_warp", "model_net", "copy_paste", "warp_cv", "warp_ctr",
+              "warp_object_cv"):  # fmt: skip
         assert torch.equal(fc[k], fc2[k]), k
     for k in ("model", "cv_traj", "ctr_traj"):
         assert torch.equal(traj[k], traj2[k]), k

@@ -58,6 +58,34 @@ def test_one_table_has_a_row_per_setting_and_method():
     assert "Camera   CV-trajectory" in text and "not applicable" in text
 
 
+def test_movers_and_heading_columns_and_the_movers_rows():
+    metrics = _metrics("", 0.0)
+    for m in ("model", "warp_object_cv", "warp_gt_movers"):
+        for h in ("1s", "2s", "avg"):
+            metrics[f"val/{m}/miou_{h}"] = 0.3
+            metrics[f"val/{m}/movers_miou_{h}"] = 0.25 if m != "warp_gt_movers" else 1.0
+    for h in ("1s", "2s"):
+        metrics[f"val/model/heading_median_{h}"] = 1.5
+        metrics[f"val/model/heading_mean_{h}"] = 2.75
+    text, md, csv_text = report_tables(metrics, HS, [])
+    rows = {r["method"]: r for r in csv.DictReader(io.StringIO(csv_text))}
+    assert float(rows["object-CV warp"]["movers_miou_1s_pct"]) == pytest.approx(25.0)
+    assert float(rows["GT-pose warp + GT movers (ref.)"]["movers_miou_avg_pct"]) == 100.0
+    assert float(rows["model"]["heading_median_2s_deg"]) == 1.5
+    assert float(rows["model"]["heading_mean_1s_deg"]) == 2.75
+    assert rows["CV-trajectory"]["heading_median_1s_deg"] == ""  # not given: empty
+    head = next(line for line in md.splitlines() if line.startswith("| setting"))
+    cols = [c.strip() for c in head.strip("|").split("|")]
+    assert cols.index("Movers 1s") == cols.index("mIoU avg") + 1
+    assert cols.index("Head med 1s") == cols.index("L2 avg") + 1
+    assert "Head med avg" not in cols  # a heading is reported per horizon only
+    model = next(line for line in md.splitlines() if line.startswith("| 3D-Occ | model |"))
+    assert dict(zip(cols, (c.strip() for c in model.strip("|").split("|"))))["Head mean 2s"] == (
+        "2.75"
+    )
+    assert "reads the future, an upper bound" in md
+
+
 def test_legend_lines_only_for_what_is_shown():
     metrics = {k: v for k, v in _metrics("", 0.0).items()}
     metrics["val/model/miou_2s"] = float("nan")

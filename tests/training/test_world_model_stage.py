@@ -20,7 +20,7 @@ from torch.utils.data import DataLoader, Subset
 from data_converters import ConvertOptions, create_data
 from renderworld.constants import GRIDS
 from renderworld.data import OccSequenceDataset, load_infos
-from renderworld.metrics import ForecastMetric, OccupancyMetric, PlanningMetric
+from renderworld.metrics import ForecastMetric, OccupancyMetric, PlanningMetric, heading_error_deg
 from renderworld.planning import PlanRequest, load_planner
 from renderworld.training import CheckpointError, evaluate, train
 from renderworld.training.checkpoint import load_checkpoint
@@ -34,6 +34,8 @@ from renderworld.world import (
     constant_turn_rate_poses,
     constant_velocity_trajectory,
     copy_paste_forecast,
+    gt_movers_reference,
+    object_constant_velocity_forecast,
     warp_along_poses,
 )
 
@@ -191,6 +193,8 @@ def test_baselines_match_renderworld_metrics_computed_directly(wm_overrides, tmp
     plan = PlanningMetric(FUTURE, (1.0, 2.0))
     ctr_plan = PlanningMetric(FUTURE, (1.0, 2.0))
     gt_warp, ctr_warp = ForecastMetric(FUTURE, (1.0, 2.0)), ForecastMetric(FUTURE, (1.0, 2.0))
+    obj_cv, gt_movers = ForecastMetric(FUTURE, (1.0, 2.0)), ForecastMetric(FUTURE, (1.0, 2.0))
+    ctr_heading = []  # heading errors at 1 s (degrees)
     turning = 0
     for i in range(len(val_set)):
         item = val_set[i]
@@ -200,6 +204,13 @@ def test_baselines_match_renderworld_metrics_computed_directly(wm_overrides, tmp
         ctr = constant_turn_rate_poses(item["history_poses"].double(), FUTURE)
         ctr_warp.update(warp_along_poses(cur, ctr, GRIDS["coarse"]), occ[HISTORY:])
         ctr_plan.update(ctr[:, :2].float(), item["future_traj"])
+        ctr_heading.append(float(heading_error_deg(ctr[1, 2], item["future_poses"][1, 2])))
+        grid = GRIDS["coarse"]
+        hist_poses = item["history_poses"].double()
+        obj_cv.update(object_constant_velocity_forecast(occ[:HISTORY], hist_poses, FUTURE, grid),
+                      occ[HISTORY:])  # fmt: skip
+        gt_movers.update(gt_movers_reference(cur, occ[HISTORY:], item["future_poses"], grid),
+                         occ[HISTORY:])  # fmt: skip
         turning += int(item["future_poses"][:, 2].abs().max() > np.radians(5.0))
         fc_cam.update(copy_paste_forecast(cur, FUTURE), occ[HISTORY:],
                       mask=item["mask_camera"][HISTORY:])  # fmt: skip
@@ -222,6 +233,13 @@ def test_baselines_match_renderworld_metrics_computed_directly(wm_overrides, tmp
     assert metrics["ctr_traj/l2_at_horizon_2s"] == pytest.approx(
         ctr_plan.compute()["l2_at_horizon@2s"], rel=1e-6
     )
+    for name in ("miou@2s", "movers_miou@1s", "movers_miou@2s"):
+        key = name.replace("@", "_")
+        assert metrics[f"warp_object_cv/{key}"] == pytest.approx(obj_cv.compute()[name]), name
+        assert metrics[f"warp_gt_movers/{key}"] == pytest.approx(gt_movers.compute()[name]), name
+    assert metrics["ctr_traj/heading_mean_1s"] == pytest.approx(np.mean(ctr_heading))
+    assert metrics["ctr_traj/heading_median_1s"] == pytest.approx(np.median(ctr_heading), abs=0.01)
+    assert "model/heading_mean_1s" not in metrics  # this model plans no heading
     assert metrics["model/turning/num_windows"] == turning
     assert metrics["model/straight/num_windows"] == len(val_set) - turning
     # The copy-paste forecast is not the GT: these numbers are not trivially 1.
@@ -260,16 +278,17 @@ def test_eval_tool_prints_the_table_and_writes_csv_and_markdown(trained, wm_over
     header = next(line for line in out.splitlines() if line.startswith("setting"))
     for col in ("method", "mIoU 1s", "mIoU 2s", "mIoU avg", "IoU avg", "L2 1s", "L2 avg", "Col 2s"):
         assert col in header
-    body = out.splitlines()[out.splitlines().index(header) + 1 :][:8]
+    body = out.splitlines()[out.splitlines().index(header) + 1 :][:10]
     assert [line.split()[:2] for line in body] == [
         ["3D-Occ", m]
-        for m in ("model", "model,", "Copy&Paste", "CV-warp", "CTR-warp", "CV-trajectory",
-                  "CTR-trajectory", "GT-pose")
+        for m in ("model", "model,", "Copy&Paste", "CV-warp", "CTR-warp", "object-CV",
+                  "CV-trajectory", "CTR-trajectory", "GT-pose", "GT-pose")
     ]  # fmt: skip
     rows = {r["method"]: r for r in csv.DictReader((tmp_path / "world_model_eval.csv").open())}
     assert list(rows) == [
         "model", "model, command from history", "Copy&Paste", "CV-warp", "CTR-warp",
-        "CV-trajectory", "CTR-trajectory", "GT-pose warp (ref.)",
+        "object-CV warp", "CV-trajectory", "CTR-trajectory", "GT-pose warp (ref.)",
+        "GT-pose warp + GT movers (ref.)",
     ]  # fmt: skip
     saved = json.loads((tmp_path / "eval_metrics.json").read_text())
     n = sum(float(rows["model"][f"{s}_windows"]) for s in ("straight", "turning"))
@@ -428,7 +447,7 @@ def test_one_eval_scores_both_settings_in_one_table(trained, wm_overrides, conve
     for k in scored:
         assert m[f"val/camera/{k[4:]}"] == pytest.approx(m[k], rel=1e-9, nan_ok=True), k
     rows = list(csv.DictReader((tmp_path / "a" / "world_model_eval.csv").open()))
-    assert [r["setting"] for r in rows] == ["3D-Occ"] * 8 + ["Camera"] * 8
+    assert [r["setting"] for r in rows] == ["3D-Occ"] * 10 + ["Camera"] * 10
     assert (
         "Camera = Img2Occ pseudo-label inputs"
         in (tmp_path / "a" / "world_model_eval.md").read_text()

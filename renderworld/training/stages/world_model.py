@@ -45,6 +45,7 @@ from renderworld.precision import autocast_off
 from renderworld.tokenizer import SceneTokenizer, Tokens
 from renderworld.training.registry import Stage, register_stage, sum_count
 from renderworld.training.stages import world_model_eval as wme
+from renderworld.training.stages import world_model_heading as wmh
 from renderworld.training.stages import world_model_pose as wmp
 from renderworld.training.stages.common import grid_of, infos_dir
 from renderworld.training.stages.world_model_bundle import TOKENIZER_KIND, export_planner_bundle
@@ -66,6 +67,8 @@ from renderworld.world import (
     constant_turn_rate_poses,
     constant_velocity_trajectory,
     copy_paste_forecast,
+    gt_movers_reference,
+    object_constant_velocity_forecast,
     teacher_forcing_split,
     warp_along_poses,
     warp_constant_velocity_forecast,
@@ -167,7 +170,12 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
 
     @torch.no_grad()
     def forecast(
-        self, model: nn.Module, batch: dict, setting: EvalSetting, tokens: torch.Tensor | None
+        self,
+        model: nn.Module,
+        batch: dict,
+        setting: EvalSetting,
+        tokens: torch.Tensor | None,
+        headings: dict[str, torch.Tensor] | None = None,
     ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
         """Forecasts and plans of the model and the baselines for one setting's inputs.
 
@@ -176,6 +184,8 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
             batch: a collated batch of :class:`WorldModelWindows` on that device.
             setting: whose history occupancy (``setting.inputs``) is rolled out.
             tokens: codes [B, >=history, G, h, w] of those inputs, or None to encode them.
+            headings: if given, filled with ``{planner: [B, S] yaw}`` (radians, current ego
+                frame) of the planners whose plan carries a heading.
 
         Returns:
             (``{method: [B, S, X, Y, Z] uint8}`` forecasts, ``{method: [B, S, 2]}`` trajectories
@@ -191,11 +201,16 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
             "copy_paste": copy_paste_forecast(current, f),
             "warp_cv": warp_constant_velocity_forecast(current, disp[:, h - 2], f, self.grid),
             "warp_ctr": warp_along_poses(current, ctr, self.grid),
+            "warp_object_cv": object_constant_velocity_forecast(
+                occ[:, :h], batch["history_poses"].double(), f, self.grid
+            ),
         }
         plans = {
             "cv_traj": constant_velocity_trajectory(disp[:, : h - 1], f),
             "ctr_traj": ctr[..., :2].to(disp.dtype),
         }
+        if headings is not None:
+            headings.update(cv_traj=torch.zeros_like(ctr[..., 2]), ctr_traj=ctr[..., 2])
         # The command is derived from the GT future (as VAD / UniAD): "model, command from
         # history" withholds it, giving the model the command the same rule derives from the
         # constant-turn-rate extrapolation of the history (what the GT-derived one is worth).
@@ -203,8 +218,11 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         forecasts, trajs = {}, {}
         for name, command in (("model", batch["command"].long()), (HISTORY_COMMAND, held)):
             if self.forecaster == "pose_warp":
-                fc, traj = wmp.pose_forecast(self, model, {**batch, "command": command}, setting)
+                fc, poses = wmp.pose_forecast(self, model, {**batch, "command": command}, setting)
                 fc = fc if name == "model" else {name: fc["model"]}
+                traj = poses[..., :2]
+                if headings is not None and name == "model":
+                    headings["model"] = poses[..., 2]
             else:
                 if tokens is None:
                     tokens = self.window_tokens(
@@ -232,10 +250,23 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         """Forecasts that read the future (reported as references, never as methods).
 
         ``warp_gt_pose``: the setting's current frame warped along the ground-truth future
-        poses ``future_poses`` (an upper bound for a static world).
+        poses ``future_poses`` (an upper bound for a static world). ``warp_gt_movers``: the same
+        warp of the current frame without its movers, the scored target's future movers pasted
+        in (an upper bound for a forecast that moves objects).
         """
-        current = batch[setting.inputs][:, self.settings.history - 1]
-        return {"warp_gt_pose": warp_along_poses(current, batch["future_poses"], self.grid)}
+        h = self.settings.history
+        current = batch[setting.inputs][:, h - 1]
+        future = batch.get("occ_target", batch["occ"])[:, h:]
+        poses = batch["future_poses"]
+        return {
+            "warp_gt_pose": warp_along_poses(current, poses, self.grid),
+            "warp_gt_movers": gt_movers_reference(current, future, poses, self.grid),
+        }
+
+    @property
+    def _heading_planners(self) -> tuple[str, ...]:
+        """Planners whose plan carries a heading (the model's only with the pose head)."""
+        return ("cv_traj", "ctr_traj") + (("model",) if self.forecaster == "pose_warp" else ())
 
     def setting_model(self, model: nn.Module, setting: EvalSetting) -> nn.Module:
         """The model a setting is scored with: its own checkpoint's, else ``model``."""
@@ -264,6 +295,7 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
                         stats[f"{s.prefix}{p}/{split}/{name}"] = torch.zeros(
                             shape, dtype=torch.float64, device=device
                         )
+            stats.update(wmh.empty_heading_stats(self._heading_planners, f, device, s.prefix))
         sums: dict[str, list[torch.Tensor]] = {"loss": [], "token_ce": [], "l2": []}
         first = self.eval_settings[0]
         for batch in loader:
@@ -287,9 +319,11 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
             target_mask = batch.get("mask_camera_target", batch["mask_camera"])[:, h:]
             turning = wme.turning_windows(batch["future_poses"], valid)
             for s in self.eval_settings:
+                yaws: dict[str, torch.Tensor] = {}
                 forecasts, trajs = self.forecast(
-                    self.setting_model(raw, s), batch, s, tokens if s is first else None
+                    self.setting_model(raw, s), batch, s, tokens if s is first else None, yaws
                 )
+                wmh.add_heading_stats(stats, yaws, batch["future_poses"][..., 2], valid, s.prefix)
                 forecasts.update(self.references(batch, s))
                 wme.add_forecast_stats(
                     stats, forecasts, target, target_mask, valid, s.prefix, turning
@@ -341,6 +375,9 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
                         out[f"{p}/{split}/num_windows"] = n["num_windows"]
                 if has_traj:
                     res = wme.planning_from_stats(stats, f"{p}/plan", hs, self.grid)
+                    out.update({f"{p}/{k}": v for k, v in res.items()})
+                if f"{p}/heading/count" in stats:
+                    res = wmh.heading_from_stats(stats, p, hs)
                     out.update({f"{p}/{k}": v for k, v in res.items()})
         return out
 

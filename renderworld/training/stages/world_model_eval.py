@@ -16,10 +16,12 @@ Methods (docs/protocol.md#baselines-and-references): ``model`` (forecast + plan;
 command, which the infos derive from the GT future), ``model_history_command`` (the same model
 given the command derived from the constant-turn-rate extrapolation of the history instead: no
 input reads the future), ``copy_paste`` (current frame repeated), ``warp_cv`` / ``warp_ctr``
-(current frame warped under constant velocity / constant turn rate), ``cv_traj`` / ``ctr_traj``
-(the same motion models as trajectories; history only) and the reference ``warp_gt_pose``
-(current frame warped along the ground-truth future poses: reads the future, an upper bound for
-a static world).
+(current frame warped under constant velocity / constant turn rate), ``warp_object_cv``
+(CTR-warp with each movable object moved at its own history velocity), ``cv_traj`` /
+``ctr_traj`` (the same motion models as trajectories; history only) and the references
+``warp_gt_pose`` (current frame warped along the ground-truth future poses: reads the future,
+an upper bound for a static world) and ``warp_gt_movers`` (the same with the ground-truth
+future movers pasted in).
 
 Beside the whole split, forecasts and L2 are counted on a straight / turning split of the
 windows (:func:`turning_windows`) and per class (CSV).
@@ -251,8 +253,9 @@ def forecast_from_stats(
     """Forecast metrics of rank-summed counts (see :func:`forecast_to_stats`).
 
     Returns:
-        ``miou_<h>``, ``miou_avg``, ``iou_<h>``, ``iou_avg`` (h = ``1s``...) and per step
-        ``miou_step<k>``, ``iou_step<k>`` (k = 1..S), as fractions.
+        ``miou_<h>``, ``miou_avg``, ``iou_<h>``, ``iou_avg``, ``movers_miou_<h>``,
+        ``movers_miou_avg`` (h = ``1s``...) and per step ``miou_step<k>``, ``iou_step<k>``,
+        ``movers_miou_step<k>`` (k = 1..S), as fractions.
     """
     conf = stats[f"{key}/confusion"].detach().cpu().double().numpy()
     metric = ForecastMetric(steps=conf.shape[0], horizons_s=horizons_s, mask_name=mask_name)
@@ -261,7 +264,7 @@ def forecast_from_stats(
     metric.skipped_frames = int(round(float(stats[f"{key}/skipped"])))
     res = metric.compute()
     out: dict[str, float] = {}
-    for name in ("miou", "iou"):
+    for name in ("miou", "iou", "movers_miou"):
         for h in metric.horizons_s:
             out[f"{name}_{_hname(h)}"] = float(res[f"{name}@{h:g}s"])
         out[f"{name}_avg"] = float(res[f"{name}_avg"])

@@ -187,7 +187,7 @@ def pose_forecast(
     stage: Any, model: Any, batch: dict, setting: Any
 ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
     """Forecasts ``model`` / ``model_warp`` / ``model_net`` [B, S, X, Y, Z] and the planned
-    trajectory [B, S, 2] (metres, current ego frame) of one setting's inputs.
+    poses [B, S, 3] (x, y, yaw; metres, radians, current ego frame) of one setting's inputs.
 
     Reads only the history occupancy (``setting.inputs``), ``history_poses`` and ``command``.
     """
@@ -226,7 +226,7 @@ def pose_forecast(
     fill = torch.where(seen.gather(1, net.flatten(1).long()).view(net.shape), net,
                        torch.full_like(net, FREE_ID))  # fmt: skip
     model_fc = torch.where(inside[..., None].bool(), warped, fill)
-    return {"model": model_fc, "model_warp": warped, "model_net": net}, poses[..., :2]
+    return {"model": model_fc, "model_warp": warped, "model_net": net}, poses
 
 
 def _bev_grid(stage):

@@ -50,12 +50,14 @@ METHODS: tuple[tuple[str, str, bool, bool], ...] = (
     ("copy_paste", "Copy&Paste", True, False),
     ("warp_cv", "CV-warp", True, False),
     ("warp_ctr", "CTR-warp", True, False),
+    ("warp_object_cv", "object-CV warp", True, False),
     ("cv_traj", "CV-trajectory", False, True),
     ("ctr_traj", "CTR-trajectory", False, True),
     ("warp_gt_pose", "GT-pose warp (ref.)", True, False),
+    ("warp_gt_movers", "GT-pose warp + GT movers (ref.)", True, False),
 )
 #: Methods that read the future (reported as references, never as competitors).
-REFERENCES = ("warp_gt_pose",)
+REFERENCES = ("warp_gt_pose", "warp_gt_movers")
 #: Window subsets of the CSV's split columns (see ``world_model_eval.TURN_THRESHOLD_DEG``).
 SPLITS = ("straight", "turning")
 REPORT_BASENAME = "world_model_eval"
@@ -72,7 +74,14 @@ _LEGEND_BASELINES = (
     "CV = constant velocity (last displacement repeated, heading fixed); CTR = constant turn "
     "rate (last displacement and last heading change repeated); both read the history only. "
     "GT-pose warp (ref.) = the current frame warped along the ground-truth future poses "
-    "(x, y, yaw): it reads the future, an upper bound for a static world, not a method."
+    "(x, y, yaw): it reads the future, an upper bound for a static world, not a method. "
+    "object-CV warp = the current frame along the CTR poses, each movable bird's-eye-view "
+    "component shifted by its own velocity measured against frame t-2 (history only). "
+    "GT-pose warp + GT movers (ref.) = the GT-pose warp without the current movers, the "
+    "ground-truth future movers pasted in: reads the future, an upper bound, not a method. "
+    "Movers = mIoU of the eight movable classes (car, truck, bus, trailer, "
+    "construction_vehicle, pedestrian, bicycle, motorcycle), from the same confusion as the "
+    "mIoU. Head = heading error of the plan, degrees (median / mean over windows)."
 )
 _LEGEND_COMMAND = (
     "The model reads a driving command (left / right / straight) derived from the ground-truth "
@@ -101,11 +110,15 @@ def _columns(horizons_s: tuple[float, ...]) -> list[tuple[str, str, float]]:
     cols = []
     for label, metric, scale in (
         ("mIoU", "miou", 100.0),
+        ("Movers", "movers_miou", 100.0),
         ("IoU", "iou", 100.0),
         ("L2", "l2_at_horizon", 1.0),
+        ("Head med", "heading_median", 1.0),
+        ("Head mean", "heading_mean", 1.0),
         ("Col", "collision_boxes_at_horizon", 100.0),
     ):
-        cols += [(f"{label} {h}", f"{metric}_{h}", scale) for h in hs]
+        hz = hs[:-1] if metric.startswith("heading") else hs
+        cols += [(f"{label} {h}", f"{metric}_{h}", scale) for h in hz]
     return cols
 
 
@@ -115,8 +128,10 @@ def _csv_columns(horizons_s: tuple[float, ...]) -> list[tuple[str, str, float]]:
     out = []
     for metric, unit, scale in (
         ("miou", "pct", 100.0),
+        ("movers_miou", "pct", 100.0),
         ("iou", "pct", 100.0),
         ("cam/miou", "pct", 100.0),
+        ("cam/movers_miou", "pct", 100.0),
         ("cam/iou", "pct", 100.0),
         ("l2_at_horizon", "m", 1.0),
         ("l2_mean_to_horizon", "m", 1.0),
@@ -127,6 +142,8 @@ def _csv_columns(horizons_s: tuple[float, ...]) -> list[tuple[str, str, float]]:
     ):
         for h in hs:
             out.append((f"{metric.replace('/', '_')}_{h}_{unit}", f"{metric}_{h}", scale))
+    for metric in ("heading_median", "heading_mean"):
+        out += [(f"{metric}_{h}_deg", f"{metric}_{h}", 1.0) for h in hs[:-1]]
     for src in PlanningMetric.SOURCES:
         for what in ("gt_skipped", "outside_grid"):
             out.append((f"collision_{src}_{what}", f"collision_{src}_{what}", 1.0))
