@@ -496,13 +496,13 @@ def test_readme_planner_example_runs(trained, tokenizer_ckpt, tmp_path):
     assert export.startswith(("python -c ", "python tools/export_planner.py "))
     export = export.replace("python tools/", f"python {REPO}/tools/", 1)
     models = (
-        "outputs/wm_tokens/checkpoints/best.pt",
-        "outputs/demo/world_model/checkpoints/best.pt",
+        "outputs/wm_tokens/checkpoints/last.pt",
+        "outputs/demo/world_model/checkpoints/last.pt",
     )
     assert sum(m in export for m in models) == 1
     for demo, real in (
         *((m, run / "checkpoints" / "last.pt") for m in models if m in export),
-        ("outputs/demo/tokenizer/checkpoints/best.pt", tokenizer_ckpt),
+        ("outputs/demo/tokenizer/checkpoints/last.pt", tokenizer_ckpt),
     ):
         assert demo in export
         export = export.replace(demo, str(real))
