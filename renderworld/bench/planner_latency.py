@@ -4,14 +4,15 @@ One home for what ``benchmarks/bench_planner.py`` and the sweep's ``planner`` an
 ``world_model`` points share: the models of the two grids (the main job's mini 50x50x4, and
 paper-sized untrained models at the Occ3D 200x200x16 grid), a street-like request, the streaming
 call that is timed (``PlannerSession.push`` of the new frame + ``plan``), requests built from
-world-model validation windows, and :func:`time_plans` (batch 1, warm-up, best of ``repeats``
-per request, median over requests).
+world-model validation windows, :func:`time_plans` (batch 1, warm-up, best of ``repeats`` per
+request, median over requests) and a point's CPU seconds (:func:`cpu_seconds`).
 
 Torch and numpy only (no Hydra): the sweep's points and the benchmark scripts import it.
 """
 
 from __future__ import annotations
 
+import resource
 import statistics
 import tempfile
 import time
@@ -27,6 +28,7 @@ from renderworld.tokenizer import TokenizerConfig, build_tokenizer
 from renderworld.world import WorldModel, WorldModelConfig
 
 __all__ = [
+    "cpu_seconds",
     "make_request",
     "mini_models",
     "occ3d_models",
@@ -36,6 +38,13 @@ __all__ = [
     "time_plans",
     "bundle_planner",
 ]
+
+
+def cpu_seconds() -> float:
+    """User + system CPU seconds of this process so far (a 1-thread point's cost, which other
+    processes' load does not inflate the way it inflates wall time)."""
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
 
 
 def make_request(grid, history: int, rng: np.random.Generator) -> PlanRequest:

@@ -34,12 +34,12 @@ from torch.utils.data import DataLoader, Subset
 from renderworld.bench.knobs import KNOBS
 from renderworld.bench.planner_latency import (
     bundle_planner,
+    cpu_seconds,
     make_request,
     occ3d_models,
     requests_from_windows,
     time_plans,
 )
-from renderworld.bench.point import cpu_seconds
 from renderworld.planning import Planner
 from renderworld.training.checkpoint import load_checkpoint
 

@@ -44,12 +44,17 @@ from omegaconf import OmegaConf
 from torch.utils.data import DataLoader, Subset
 
 from renderworld.bench.knobs import KNOBS, format_value
-from renderworld.bench.planner_latency import bundle_planner, requests_from_windows, time_plans
+from renderworld.bench.planner_latency import (
+    bundle_planner,
+    cpu_seconds,
+    requests_from_windows,
+    time_plans,
+)
 from renderworld.training.api import evaluate, train
 from renderworld.training.checkpoint import load_checkpoint
 from renderworld.training.registry import get_stage
 
-__all__ = ["run", "knob_value", "time_inference", "cpu_seconds", "split_bench_overrides",
+__all__ = ["run", "knob_value", "time_inference", "split_bench_overrides",
            "WARMUP", "REPEATS"]  # fmt: skip
 
 WARMUP = 2
@@ -121,13 +126,6 @@ def time_inference(cfg: Any, ckpt_path: Path, frames: int) -> tuple[float, int]:
                 best = min(best, 1000.0 * (time.perf_counter() - t0))
             times.append(best)
     return float(statistics.median(times)), sum(p.numel() for p in model.parameters())
-
-
-def cpu_seconds() -> float:
-    """User + system CPU seconds of this process so far (a 1-thread point's cost, which other
-    processes' load does not inflate the way it inflates wall time)."""
-    ru = resource.getrusage(resource.RUSAGE_SELF)
-    return ru.ru_utime + ru.ru_stime
 
 
 def _spaced(n: int, frames: int) -> list[int]:
