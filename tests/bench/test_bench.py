@@ -255,7 +255,7 @@ def fake_root(tmp_path):
 
 @pytest.mark.parametrize(
     "preset, ranking, count, ranked",
-    [("quick", False, 19, 0), ("standard", False, 35, 0), ("standard", True, 53, 18),
+    [("quick", False, 15, 0), ("standard", False, 23, 0), ("standard", True, 41, 18),
      ("full", True, 89, 18)],
 )  # fmt: skip
 def test_shipped_presets_expand(fake_root, tmp_path, preset, ranking, count, ranked):
