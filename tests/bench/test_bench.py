@@ -506,3 +506,23 @@ def test_sweep_end_to_end_on_two_tiny_tokenizer_points(converted, tmp_path):
     paths = write_outputs(again, tmp_path)
     assert Path(paths["pareto_tokenizer"]).is_file()
     assert any("reused" in line for line in log)
+
+
+def test_planner_rows_table_in_metres_and_a_latency_only_plot(tmp_path):
+    def res(knob, value, l2, ms):
+        return {
+            "stage": "planner", "knob": knob, "value": value, "seed": 0, "phase": "",
+            "knob_value": "" if value is None else str(value).lower(),
+            "knob_values": {"forecast": "true"}, "steps": 0, "max_steps": 0, "max_minutes": None,
+            "train_s": 0.0, "infer_ms": ms, "peak_rss_mib": 500.0, "params": 10,
+            "grid": "mini 50x50x4", "metrics": {"val/l2_3s": l2, "val/forecast_equal": 1.0},
+        }  # fmt: skip
+
+    results = [res("default", None, 1.83, 120.0), res("forecast", False, 1.83, 40.0),
+               res("grid", "occ3d", float("nan"), 900.0)]  # fmt: skip
+    paths = write_outputs(results, tmp_path)
+    md = paths["md"].read_text()
+    assert "no training (latency of the main job's planner)" in md
+    assert "| **default** (forecast=true) | 1.83 | – | +0.00 | 100.00 |" in md  # L2 in metres
+    assert "| forecast=false | 1.83 | – | +0.00 |" in md and "| 40.0 | 0.33× |" in md
+    assert paths["pareto_planner"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -82,9 +82,10 @@ def test_the_presets_cover_every_stage_and_the_asked_for_knobs():
         assert set(spec["stages"]) == {"img2occ", "tokenizer", "world_model", "planner"}, preset
     std = specs["standard"]["stages"]
     assert std["world_model"]["budget"]["max_steps"] >= 400
-    assert {"forecaster", "scenario_library", "history", "width"} <= set(
-        std["world_model"]["knobs"]
-    )
+    assert {"forecaster", "scenario_library"} <= set(std["world_model"]["knobs"])
+    full = specs["full"]["stages"]
+    assert {"history", "steps", "width"} <= set(full["world_model"]["knobs"])
+    assert {"grid", "views_per_step", "prune_opacity"} <= set(full["img2occ"]["knobs"])
     assert {"forecast", "precision", "threads", "grid"} <= set(std["planner"]["knobs"])
     for preset, spec in specs.items():
         for stage, s in spec["stages"].items():
