@@ -76,74 +76,23 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from renderworld.constants import FREE_ID  # noqa: E402
-from renderworld.planning import Planner, PlannerSession, PlanRequest, load_planner  # noqa: E402
-from renderworld.tokenizer import TokenizerConfig, build_tokenizer  # noqa: E402
-from renderworld.world import WorldModel, WorldModelConfig  # noqa: E402
+from renderworld.bench.planner_latency import (  # noqa: E402
+    make_request,
+    mini_models,
+    occ3d_models,
+    pose_warp_model,
+    session_runner,
+)
+from renderworld.planning import Planner, PlannerSession, PlanRequest  # noqa: E402
 
 DEMO = Path("outputs/demo")
 STAGES = ("encode", "world_model", "decode")
-
-
-def make_request(grid, history, rng) -> PlanRequest:
-    """A street-like history: road at z=0, scattered objects at z=1, 4 m per 0.5 s forward."""
-    occ = np.full((history, *grid), FREE_ID, dtype=np.uint8)
-    occ[..., 0] = 11
-    n = grid[0] * grid[1] // 50
-    xs, ys = rng.integers(0, grid[0], n), rng.integers(0, grid[1], n)
-    occ[:, xs, ys, 1] = rng.integers(1, 17, n)
-    disp = np.tile([[4.0, 0.1]], (history - 1, 1))
-    yaws = np.linspace(-0.05 * (history - 1), 0.0, history)  # read by pose-warp models only
-    return PlanRequest(occ, disp, "straight", ego_yaws=yaws)
-
-
-def _models(tok_cfg: TokenizerConfig, **wm) -> tuple:
-    torch.manual_seed(0)
-    tok = build_tokenizer(tok_cfg)
-    cfg = WorldModelConfig(
-        codebook_sizes=tuple(tok.cfg.codebook_sizes), token_grid=tuple(tok.cfg.latent_shape), **wm
-    )
-    return tok, WorldModel(cfg)
-
-
-def mini_models(tokenizer_ckpt: Path, world_model_ckpt: Path) -> tuple[tuple, str]:
-    """(tokenizer, world model) of the demo when its checkpoints exist, else untrained."""
-    if tokenizer_ckpt.is_file() and world_model_ckpt.is_file():
-        from renderworld.training.stages.world_model import export_planner_bundle
-
-        with tempfile.TemporaryDirectory() as tmp:
-            bundle = export_planner_bundle(world_model_ckpt, tokenizer_ckpt, Path(tmp) / "p.pt")
-            p = load_planner(bundle)
-        return (p.tokenizer, p.world_model), "demo checkpoints"
-    tok = TokenizerConfig(
-        grid_shape=(50, 50, 4), latent_shape=(25, 25), latent_channels=64, codebook_size=256,
-        base_channels=32, num_res_blocks=1, attention=False,
-    )  # fmt: skip
-    models = _models(tok, embed_dim=64, num_heads=4, num_scales=2, layers_per_scale=(1, 1))
-    return models, "untrained, mini sizes (no demo checkpoints)"
-
-
-def occ3d_models() -> tuple:
-    """Paper-sized AM-VAE + default-width world model at 200x200x16, untrained weights."""
-    return _models(
-        TokenizerConfig(), embed_dim=128, num_heads=4, num_scales=3, layers_per_scale=(2, 2, 2)
-    )
 
 
 def _run_today(planner: Planner, req: PlanRequest, _session) -> dict:
     t0 = time.perf_counter()
     res = planner.plan(req)
     return {**res.timings, "wall": 1e3 * (time.perf_counter() - t0)}
-
-
-def _run_session(forecast: bool):
-    def run(planner: Planner, req: PlanRequest, session: PlannerSession) -> dict:
-        t0 = time.perf_counter()
-        session.push(req.occupancy[-1])  # the new frame: one encode
-        res = session.plan(req.ego_displacements, req.command, forecast, req.ego_yaws)
-        return {**res.timings, "wall": 1e3 * (time.perf_counter() - t0)}
-
-    return run
 
 
 def _run_fast_plan(planner: Planner, req: PlanRequest, _session) -> dict:
@@ -167,17 +116,6 @@ def agreement(models, grid, device: str) -> str:
 MODES = ("today", "new full", "new traj", "full bf16", "fast plan", "pw full", "pw traj")
 
 
-def pose_warp_model(wm):
-    """The pose-warp world model (the main job's kind) of ``wm``'s config, untrained, seed 0;
-    ``wm`` itself when it is one (the demo's checkpoints)."""
-    from renderworld.world.pose import PoseWarpWorldModel
-
-    if isinstance(wm, PoseWarpWorldModel):
-        return wm
-    torch.manual_seed(0)
-    return PoseWarpWorldModel(wm.config, anchors="ctr_cv")  # world_model_mini's anchors
-
-
 def bench_case(models, grid, device: str, reps: int, wanted) -> dict[str, dict]:
     """Median timings (ms) per mode, rounds interleaved."""
     tok, wm = models
@@ -186,15 +124,17 @@ def bench_case(models, grid, device: str, reps: int, wanted) -> dict[str, dict]:
     bf16 = Planner(tok, wm, device=device, fast=True, precision="bfloat16")
     modes = {
         "today": (ref, _run_today),
-        "new full": (fast, _run_session(True)),
-        "new traj": (fast, _run_session(False)),
-        "full bf16": (bf16, _run_session(True)),
+        "new full": (fast, session_runner(True)),
+        "new traj": (fast, session_runner(False)),
+        "full bf16": (bf16, session_runner(True)),
     }
     modes["fast plan"] = (fast, _run_fast_plan)
     planners = [fast, bf16]
     if {"pw full", "pw traj"} & set(wanted):
         pw = Planner(tok, pose_warp_model(wm), device=device)
-        modes.update({"pw full": (pw, _run_session(True)), "pw traj": (pw, _run_session(False))})
+        modes.update(
+            {"pw full": (pw, session_runner(True)), "pw traj": (pw, session_runner(False))}
+        )
         planners.append(pw)
     modes = {k: v for k, v in modes.items() if k in wanted}
     req = make_request(grid, ref.config.history_frames, np.random.default_rng(0))

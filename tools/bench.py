@@ -1,9 +1,11 @@
 """Accuracy vs time: sweep the knobs of each stage on the same budget and tabulate the cost.
 
-    python tools/bench.py [bench=quick|full] [out=DIR] [overwrite=true] [data_root=DIR]
+    python tools/bench.py [bench=quick|standard|full] [bench.ranking=true] [out=DIR]
+        [overwrite=true] [data_root=DIR]
 
-Writes <out>/results.csv, results.md and pareto_<stage>.png (configs/bench.yaml explains each
-key; renderworld.bench.sweep how a point is run and measured).
+Prints the preset's time estimate, then writes <out>/results.csv, results.md and
+pareto_<stage>.png (configs/bench.yaml explains each key; renderworld.bench.sweep how a point
+is run and measured).
 """
 
 import sys

@@ -1,10 +1,17 @@
 """The accuracy-vs-time sweep (``tools/bench.py``).
 
 Modules:
-    sweep   expand a preset into points (stage, knob, value) and run each in its own process
-    point   one point: train, evaluate, time inference, report peak memory
-    report  ``results.csv``, per-stage tables with ratios and Pareto plots
-    main    a composed ``configs/bench.yaml`` -> sweep -> outputs
+    knobs            what each stage can change and what it measures
+    sweep            expand a preset into points (stage, knob, value, seed) and run each in its
+                     own process
+    point            one training point: train, evaluate, time inference, report peak memory
+    planner_point    one planner point: the main job's planner with one option changed, timed
+    planner_latency  the planner latency machinery (shared with benchmarks/bench_planner.py)
+    estimate         the preset's time estimate printed at start
+    report           ``results.csv``, per-stage tables (seed mean and spread, ranking check)
+                     and Pareto plots
+    main             a composed ``configs/bench.yaml`` -> sweep -> outputs
 """
 
-__all__ = ["main", "point", "report", "sweep"]
+__all__ = ["estimate", "knobs", "main", "planner_latency", "planner_point", "point", "report",
+           "sweep"]  # fmt: skip

@@ -1,13 +1,18 @@
 """Accuracy-vs-time sweep (``tools/bench.py``): expand a preset into points and run them.
 
-A point is ``(stage, knob, value)``: the stage's mini experiment (``configs/experiment/``) with
-the preset's budget (the same ``trainer.max_steps`` / ``trainer.max_minutes`` for every point of
-a stage) and ONE knob changed from the stage default; the point ``knob = "default"`` changes
-nothing and is the reference of every ratio. Each point runs in its own subprocess
-(``python -m renderworld.bench.point``: train, evaluate, time inference, report its own
-peak RSS), one at a time, and leaves ``<out>/points/<id>/result.json``. A point whose
+A point is ``(stage, knob, value, seed)``: the stage's mini experiment (``configs/experiment/``)
+with the preset's budget (the same ``trainer.max_steps`` / ``trainer.max_minutes`` for every
+point of a stage), ONE knob changed from the stage default and the training seed; the point
+``knob = "default"`` changes nothing and is the reference of every comparison. Every point runs
+once per seed of its stage (``seeds``, two by default: the table shows their mean and spread).
+A stage's ``ranking`` section adds the default and a few knob points again at the main job's
+step count, so that the report can check whether the order at the budget is the order there.
+The ``planner`` stage trains nothing: its points time the main job's planner
+(``renderworld.bench.planner_latency``). Each point runs in its own subprocess
+(``python -m renderworld.bench.point``: train, evaluate, time inference, report its own peak
+RSS), one at a time, and leaves ``<out>/points/<id>/result.json``. A point whose
 ``result.json`` carries the same fingerprint (stage, experiment, every override, the budget,
-the data root and the upstream checkpoint's size and mtime) is reused unless ``overwrite``;
+the seed, the data root and the upstream files' size and mtime) is reused unless ``overwrite``;
 the package's code is not fingerprinted (after changing a model, re-measure with ``overwrite``).
 """
 
@@ -22,92 +27,42 @@ import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
+from renderworld.bench.knobs import DEFAULT, KNOBS, STAGE_METRICS, format_value, knob_override
+
 __all__ = [
-    "KNOBS",
-    "STAGE_METRICS",
-    "Knob",
     "BenchPoint",
     "expand_points",
     "point_fingerprint",
+    "point_spec",
     "run_point",
     "run_sweep",
+    "RANKING",
 ]
 
-
-@dataclass(frozen=True)
-class Knob:
-    """A swept setting: the Hydra key it overrides and how a value is written there."""
-
-    key: str
-    kind: str  # "name" (a config-group option), "bool", "int", "float", "size" ([h, w])
-    what: str
-
-
-#: Knobs per stage (name -> Knob). A preset naming another knob is an error.
-KNOBS: dict[str, dict[str, Knob]] = {
-    "img2occ": {
-        "grid": Knob("grid", "name", "voxel grid (Occ3D range)"),
-        "input_size": Knob("stage.input_size", "size", "network input [H, W] of the 6 images"),
-        "render_size": Knob("stage.render_size", "size", "rendered / label maps [H, W]"),
-        "views_per_step": Knob("stage.model.views_per_step", "int", "cameras rendered per step"),
-        "prune_opacity": Knob(
-            "stage.model.prune_opacity", "float", "skip Gaussians below this opacity (0: off)"
-        ),
-        "fine_semantics": Knob(
-            "stage.model.fine_semantics", "bool", "stride-2 per-pixel class head (on/off)"
-        ),
-        "feature_stride": Knob("stage.model.feature_stride", "int", "lifted feature stride"),
-        "backproject_weight": Knob(
-            "stage.model.backproject_weight", "float", "back-projected voxel targets (0: off)"
-        ),
-    },
-    "tokenizer": {
-        "latent_size": Knob("stage.model.latent_shape", "size", "token grid [h, w]"),
-        "latent_channels": Knob("stage.model.latent_channels", "int", "latent channels"),
-        "codebook_size": Knob("stage.model.codebook_size", "int", "codebook entries K"),
-    },
-    "world_model": {
-        "history": Knob("stage.history", "int", "input frames (0.5 s apart)"),
-    },
-}
-
-#: Per stage: (primary metric, higher is better), (secondary metric, higher is better), and
-#: what one inference sample is.
-STAGE_METRICS: dict[str, dict[str, Any]] = {
-    "img2occ": {
-        "metric": ("val/cam/miou", True, "mIoU, camera mask (%)"),
-        "metric2": ("val/cam/iou", True, "IoU, camera mask (%)"),
-        "sample": "one 6-camera keyframe -> occupancy (forward + readout)",
-    },
-    "tokenizer": {
-        "metric": ("val/miou", True, "recon. mIoU (%)"),
-        "metric2": ("val/iou", True, "recon. IoU (%)"),
-        "sample": "one occupancy frame -> codes -> occupancy (encode + decode)",
-    },
-    "world_model": {
-        "metric": ("val/model/miou_avg", True, "forecast mIoU, mean 1-3 s (%)"),
-        "metric2": ("val/model/l2_at_horizon_3s", False, "L2 @ 3 s (m)"),
-        "sample": "one window: encode the history, roll out and decode 3 s (6 frames)",
-    },
-}
-DEFAULT = "default"
+#: ``BenchPoint.phase`` of the points run again at the main job's step count.
+RANKING = "ranking"
 
 
 @dataclass(frozen=True)
 class BenchPoint:
-    """One measurement: the stage's experiment with one knob changed.
+    """One measurement: the stage's experiment with one knob changed, one seed.
 
     Attributes:
-        stage: ``img2occ`` | ``tokenizer`` | ``world_model``.
+        stage: ``img2occ`` | ``tokenizer`` | ``world_model`` | ``planner``.
         knob: a key of ``KNOBS[stage]`` or ``"default"``.
         value: the knob's value as written in the preset (None for the default point).
-        experiment: Hydra experiment (``configs/experiment/<name>.yaml``).
-        overrides: every Hydra override of the training command, in order (common, budget, knob).
-        eval_overrides: the evaluation command's overrides (all but the budget).
+        experiment: Hydra experiment (``configs/experiment/<name>.yaml``; "" for the planner).
+        overrides: every override of the training command (planner: of its options), in order
+            (common, upstream, stage, budget, seed, knob).
+        eval_overrides: the evaluation command's overrides (all but the budget and the seed).
         upstream: files the point reads besides the data (fingerprinted by size and mtime).
+        seed: the training seed (``seed=`` override).
+        phase: ``""`` (the preset's budget) or ``"ranking"`` (the ranking budget).
+        claimed: whether the stage's budget is one whose ranking the preset claims is stable.
     """
 
     stage: str
@@ -117,84 +72,89 @@ class BenchPoint:
     overrides: tuple[str, ...]
     eval_overrides: tuple[str, ...]
     upstream: tuple[str, ...] = field(default=())
+    seed: int = 0
+    phase: str = ""
+    claimed: bool = True
 
     @property
-    def point_id(self) -> str:
-        """Folder-safe id, e.g. ``img2occ__views_per_step-1``."""
+    def config_id(self) -> str:
+        """The point without its seed, e.g. ``img2occ__views_per_step-1``."""
         if self.knob == DEFAULT:
             return f"{self.stage}__default"
         return f"{self.stage}__{self.knob}-{format_value(self.value)}"
 
-
-def format_value(value: Any) -> str:
-    """A knob value as text: ``[96, 176]`` -> ``96x176``, ``0.0`` -> ``0``."""
-    if isinstance(value, (list, tuple)):
-        return "x".join(format_value(v) for v in value)
-    if isinstance(value, float):
-        return f"{value:g}"
-    return str(value)
+    @property
+    def point_id(self) -> str:
+        """Folder-safe id, e.g. ``img2occ__views_per_step-1__s0`` (``__ranking`` appended for
+        a ranking point)."""
+        return f"{self.config_id}__s{self.seed}" + (f"__{self.phase}" if self.phase else "")
 
 
-def _override(knob: Knob, name: str, value: Any, where: str) -> str:
-    bad = TypeError(f"{where}: expected {_KIND_TEXT[knob.kind]} for knob {name!r}, got {value!r}")
-    if knob.kind == "name":
-        if not isinstance(value, str) or not value:
-            raise bad
-        return f"{knob.key}={value}"
-    if knob.kind == "bool":
-        if not isinstance(value, bool):
-            raise bad
-        return f"{knob.key}={str(value).lower()}"
-    if knob.kind == "int":
-        if not isinstance(value, int) or isinstance(value, bool):
-            raise bad
-        return f"{knob.key}={value}"
-    if knob.kind == "float":
-        if not isinstance(value, (int, float)) or isinstance(value, bool):
-            raise bad
-        return f"{knob.key}={float(value)!r}"
-    ok = (
-        isinstance(value, (list, tuple))
-        and len(value) == 2
-        and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)
-    )
-    if not ok:
-        raise bad
-    return f"{knob.key}=[{int(value[0])},{int(value[1])}]"
+_STAGE_KEYS = {"experiment", "budget", "overrides", "knobs", "seeds", "ranking", "claim_ranking"}
+_PLANNER_KEYS = {"knobs", "windows", "seeds"}
 
 
-_KIND_TEXT = {
-    "name": "a config option name (str)",
-    "bool": "true or false",
-    "int": "an int",
-    "float": "a number",
-    "size": "a pair of positive ints [h, w]",
-}
-_STAGE_KEYS = {"experiment", "budget", "overrides", "knobs"}
+def _seeds(value: Any, where: str) -> tuple[int, ...]:
+    if value is None:
+        return (0, 1)
+    ok = isinstance(value, Sequence) and not isinstance(value, str) and value
+    if not ok or not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+        raise ValueError(f"{where}: expected a non-empty list of int seeds, got {value!r}")
+    if len(set(value)) != len(value):
+        raise ValueError(f"{where}: a seed is listed twice in {value!r}")
+    return tuple(value)
+
+
+def _knob_points(stage: str, knobs: Any, where: str, library: str | None):
+    """(knob, value, override) of each knob value of a stage, in preset order."""
+    if not isinstance(knobs, Mapping):
+        raise TypeError(f"{where}.knobs: expected a mapping, got {type(knobs).__name__}")
+    out = []
+    for name, values in knobs.items():
+        if name not in KNOBS[stage]:
+            raise ValueError(
+                f"{where}.knobs.{name}: unknown knob for stage {stage!r}; expected one of "
+                f"{sorted(KNOBS[stage])}"
+            )
+        if not isinstance(values, Sequence) or isinstance(values, str) or not values:
+            raise ValueError(f"{where}.knobs.{name}: expected a non-empty list of values")
+        for value in values:
+            ov = knob_override(KNOBS[stage][name], name, value, f"{where}.knobs.{name}", library)
+            out.append((name, value, ov))
+    return out
 
 
 def expand_points(
     preset: Mapping[str, Any],
     common: Sequence[str] = (),
     upstream: Mapping[str, Sequence[str]] | None = None,
+    library: str | None = None,
 ) -> list[BenchPoint]:
-    """The points of a preset: per stage, the default point then each knob value.
+    """The points of a preset: per stage and seed, the default point then each knob value;
+    then the stage's ranking points.
 
     Args:
-        preset: ``{"stages": {stage: {"experiment": str, "budget": {"max_steps": int,
-            "max_minutes": float | None}, "overrides": [str], "knobs": {knob: [values]}}}}``
-            (``configs/bench/<preset>.yaml``; a stage left out is not run). ``overrides`` go
-            to the training and the evaluation command of every point of the stage.
+        preset: ``{"stages": {stage: spec}}`` (``configs/bench/<preset>.yaml``; a stage left
+            out is not run). A training stage's spec: ``experiment`` (str), ``budget``
+            (``{"max_steps": int, "max_minutes": float | None}``), ``seeds`` (list of ints,
+            default ``[0, 1]``), ``overrides`` (to the training and the evaluation command of
+            every point of the stage), ``knobs`` (``{knob: [values]}``), ``claim_ranking``
+            (bool, default true: false marks a budget below the stable one) and ``ranking``
+            (``{"budget": {...}, "points": ["default", "<knob>-<value>", ...]}``: those points
+            again at that budget, same seeds). The planner's spec: ``windows`` (validation
+            windows timed, default 7), ``seeds`` (default ``[0]``) and ``knobs``.
         common: overrides for every command of every stage (e.g. the data root).
-        upstream: per stage, extra overrides of its train and eval commands naming files it
-            reads (e.g. ``stage.tokenizer_ckpt=PATH``); the paths are fingerprinted.
+        upstream: per stage, extra overrides naming files it reads (e.g.
+            ``stage.tokenizer_ckpt=PATH``); the paths are fingerprinted.
+        library: the scenario library's folder for ``scenario_library`` knobs (None: none).
 
     Returns:
         Points in run order.
 
     Raises:
         ValueError: an unknown stage, stage key or knob (the message names the key), a missing
-            or bad budget, an empty preset.
+            or bad budget, bad seeds, a ranking point that is not a point of the stage, an
+            empty preset.
         TypeError: a knob value of the wrong type.
     """
     if not isinstance(preset, Mapping):
@@ -210,44 +170,77 @@ def expand_points(
             raise ValueError(f"{where}: unknown stage {stage!r}; expected one of {sorted(KNOBS)}")
         if not isinstance(spec, Mapping):
             raise TypeError(f"{where}: expected a mapping, got {type(spec).__name__}")
-        extra = set(spec) - _STAGE_KEYS
+        allowed = _PLANNER_KEYS if stage == "planner" else _STAGE_KEYS
+        extra = set(spec) - allowed
         if extra:
-            raise ValueError(
-                f"{where}.{sorted(extra)[0]}: unknown key; expected {sorted(_STAGE_KEYS)}"
-            )
+            raise ValueError(f"{where}.{sorted(extra)[0]}: unknown key; expected {sorted(allowed)}")
+        ups = tuple(str(o) for o in upstream.get(stage, ()))
+        files = tuple(o.split("=", 1)[1] for o in ups)
+        knobs = _knob_points(stage, spec.get("knobs") or {}, where, library)
+        if stage == "planner":
+            seeds = _seeds(spec.get("seeds", [0]), f"{where}.seeds")
+            windows = spec.get("windows", 7)
+            if not isinstance(windows, int) or isinstance(windows, bool) or windows < 1:
+                raise ValueError(f"{where}.windows: expected an int >= 1, got {windows!r}")
+            base = (*common, *ups, f"windows={windows}")
+            for seed in seeds:
+                points.append(BenchPoint(stage, DEFAULT, None, "", base, base, files, seed))
+                points += [
+                    BenchPoint(stage, k, v, "", (*base, ov), (*base, ov), files, seed)
+                    for k, v, ov in knobs
+                ]
+            continue
         experiment = spec.get("experiment")
         if not isinstance(experiment, str) or not experiment:
             raise ValueError(f"{where}.experiment: expected an experiment name, got {experiment!r}")
-        budget = _budget(spec.get("budget"), f"{where}.budget")
+        seeds = _seeds(spec.get("seeds"), f"{where}.seeds")
+        claimed = spec.get("claim_ranking", True)
+        if not isinstance(claimed, bool):
+            raise ValueError(f"{where}.claim_ranking: expected true or false, got {claimed!r}")
         shared = tuple(str(o) for o in (spec.get("overrides") or ()))
-        ups = tuple(str(o) for o in upstream.get(stage, ()))
-        files = tuple(o.split("=", 1)[1] for o in ups)
-        base = (*common, *ups, *shared, *budget)
         evals = (*common, *ups, *shared)  # eval builds the same model and data
-        points.append(BenchPoint(stage, DEFAULT, None, experiment, base, evals, files))
-        knobs = spec.get("knobs") or {}
-        if not isinstance(knobs, Mapping):
-            raise TypeError(f"{where}.knobs: expected a mapping, got {type(knobs).__name__}")
-        for name, values in knobs.items():
-            if name not in KNOBS[stage]:
-                raise ValueError(
-                    f"{where}.knobs.{name}: unknown knob for stage {stage!r}; expected one of "
-                    f"{sorted(KNOBS[stage])}"
-                )
-            if not isinstance(values, Sequence) or isinstance(values, str) or not values:
-                raise ValueError(f"{where}.knobs.{name}: expected a non-empty list of values")
-            knob = KNOBS[stage][name]
-            for value in values:
-                ov = _override(knob, name, value, f"{where}.knobs.{name}")
-                # Last, so it wins over the shared overrides; eval builds the same model.
-                points.append(
-                    BenchPoint(stage, name, value, experiment, (*base, ov), (*evals, ov), files)
-                )
+
+        make = partial(_train_point, stage, experiment, evals, files, claimed)
+        budget = _budget(spec.get("budget"), f"{where}.budget")
+        all_knobs = [(DEFAULT, None, None), *knobs]
+        for seed in seeds:
+            points += [make(k, v, ov, seed, budget, "") for k, v, ov in all_knobs]
+        ranking = spec.get("ranking")
+        if ranking is not None:
+            points += _ranking_points(ranking, f"{where}.ranking", all_knobs, seeds, make, stage)
     ids = [p.point_id for p in points]
     dup = sorted({i for i in ids if ids.count(i) > 1})
     if dup:
         raise ValueError(f"bench.stages: the point {dup[0]!r} is listed twice")
     return points
+
+
+def _train_point(stage, experiment, evals, files, claimed, knob, value, ov, seed, budget, phase):
+    """A training stage's point; the knob's override last, so it wins over the shared ones."""
+    knob_ov = (ov,) if ov else ()
+    train = (*evals, *budget, f"seed={seed}", *knob_ov)
+    return BenchPoint(stage, knob, value, experiment, train, (*evals, *knob_ov), files, seed,
+                      phase, claimed)  # fmt: skip
+
+
+def _ranking_points(ranking, where, all_knobs, seeds, make, stage) -> list[BenchPoint]:
+    if not isinstance(ranking, Mapping) or set(ranking) != {"budget", "points"}:
+        raise ValueError(f"{where}: expected {{budget: {{...}}, points: [...]}}, got {ranking!r}")
+    budget = _budget(ranking["budget"], f"{where}.budget")
+    by_id = {}
+    for k, v, ov in all_knobs:
+        name = DEFAULT if k == DEFAULT else f"{k}-{format_value(v)}"
+        by_id[name] = (k, v, ov)
+    wanted = ranking["points"]
+    if not isinstance(wanted, Sequence) or isinstance(wanted, str) or len(wanted) < 3:
+        raise ValueError(f"{where}.points: expected at least 3 point names, got {wanted!r}")
+    for name in wanted:
+        if name not in by_id:
+            raise ValueError(
+                f"{where}.points: {name!r} is not a point of stage {stage!r}; expected one of "
+                f"{sorted(by_id)}"
+            )
+    return [make(*by_id[name], seed, budget, RANKING) for seed in seeds for name in wanted]
 
 
 def _budget(budget: Any, where: str) -> tuple[str, ...]:
@@ -285,6 +278,8 @@ def _point_fields(point: BenchPoint, infer_frames: int) -> dict[str, Any]:
         "overrides": list(point.overrides),
         "eval_overrides": list(point.eval_overrides),
         "infer_frames": int(infer_frames),
+        "seed": point.seed,
+        "phase": point.phase,
     }
 
 
@@ -300,9 +295,18 @@ def point_fingerprint(point: BenchPoint, infer_frames: int) -> str:
         st = p.stat() if p.is_file() else None
         ups.append([str(p.resolve()), st.st_size if st else None, st.st_mtime_ns if st else None])
     blob = json.dumps(
-        {**_point_fields(point, infer_frames), "upstream": ups, "version": 1}, sort_keys=True
+        {**_point_fields(point, infer_frames), "upstream": ups, "version": 2}, sort_keys=True
     )
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def point_spec(point: BenchPoint, point_dir: Path, infer_frames: int, repo: Path) -> dict[str, Any]:
+    """The ``spec.json`` of a point: what ``python -m renderworld.bench.point`` reads."""
+    return {
+        **_point_fields(point, infer_frames),
+        "config_dir": str((Path(repo) / "configs").resolve()),
+        "point_dir": str(Path(point_dir).resolve()),
+    }
 
 
 def run_point(
@@ -318,11 +322,7 @@ def run_point(
     if point_dir.exists():
         shutil.rmtree(point_dir)
     point_dir.mkdir(parents=True)
-    spec = {
-        **_point_fields(point, infer_frames),
-        "config_dir": str((repo / "configs").resolve()),
-        "point_dir": str(point_dir.resolve()),
-    }
+    spec = point_spec(point, point_dir, infer_frames, repo)
     (point_dir / "spec.json").write_text(json.dumps(spec, indent=2) + "\n")
     env = dict(os.environ)
     env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
@@ -389,7 +389,8 @@ def run_sweep(
         echo(f"{head}: running ...")
         t0 = time.perf_counter()
         res = runner(point, pdir, infer_frames, repo, timeout_s)
-        res = {**res, "fingerprint": fp, "point_wall_s": time.perf_counter() - t0}
+        res = {**res, "fingerprint": fp, "point_wall_s": time.perf_counter() - t0,
+               "seed": point.seed, "phase": point.phase, "claimed": point.claimed}  # fmt: skip
         stored.write_text(json.dumps(res, indent=2) + "\n")
         echo(f"{head}: {res['point_wall_s']:.0f} s ({_summary(res)})")
         results.append({**res, "reused": False})
@@ -398,9 +399,10 @@ def run_sweep(
 
 
 def _summary(res: Mapping[str, Any]) -> str:
-    name = STAGE_METRICS[res["stage"]]["metric"][0]
+    name, _, label = STAGE_METRICS[res["stage"]]["metric"]
     m = res.get("metrics", {}).get(name)
-    mtxt = f"{name}={100 * m:.2f}" if isinstance(m, (int, float)) else f"{name}=?"
+    scale = 100 if "%" in label else 1
+    mtxt = f"{name}={scale * m:.2f}" if isinstance(m, (int, float)) else f"{name}=?"
     return (
         f"{mtxt}, train {res.get('train_s', float('nan')):.0f} s, "
         f"infer {res.get('infer_ms', float('nan')):.1f} ms, "

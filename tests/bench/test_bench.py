@@ -16,18 +16,20 @@ import pytest
 from omegaconf import OmegaConf
 
 from data_converters import ConvertOptions, create_data
+from renderworld.bench.knobs import KNOBS, format_value
 from renderworld.bench.main import bench_points
 from renderworld.bench.report import (
     pareto_front,
+    ranking_check,
+    ranking_text,
     result_rows,
     stage_table,
     write_outputs,
 )
 from renderworld.bench.sweep import (
-    KNOBS,
+    RANKING,
     BenchPoint,
     expand_points,
-    format_value,
     point_fingerprint,
     run_sweep,
 )
@@ -66,15 +68,18 @@ def test_pareto_front_keeps_ties_and_skips_nan():
 # ---------------------------------------------------------------------- expansion
 def test_points_expand_default_first_then_each_knob_value_with_the_same_budget():
     pts = expand_points(_preset(tokenizer=TOK), common=["dataset.data_root=/d"])
-    assert [p.point_id for p in pts] == [
+    configs = [
         "tokenizer__default",
         "tokenizer__codebook_size-64",
         "tokenizer__codebook_size-1024",
         "tokenizer__latent_size-50x50",
     ]
+    # Two seeds by default: every point once per seed, seed 0 first.
+    assert [p.point_id for p in pts] == [f"{c}__s{s}" for s in (0, 1) for c in configs]
     budget = {"trainer.max_steps=10", "trainer.max_minutes=1.0", "trainer.val_every=0"}
     for p in pts:
         assert budget <= set(p.overrides)
+        assert f"seed={p.seed}" in p.overrides and f"seed={p.seed}" not in p.eval_overrides
         assert p.overrides[0] == "dataset.data_root=/d"
         assert not budget & set(p.eval_overrides)  # the budget is for training only
     assert pts[0].overrides == pts[1].overrides[:-1]
@@ -88,6 +93,7 @@ def test_img2occ_accuracy_knobs_write_their_overrides():
         "experiment": "img2occ_mini",
         "budget": {"max_steps": 10},
         "knobs": {"fine_semantics": [False], "feature_stride": [4], "backproject_weight": [0.0]},
+        "seeds": [0],
     }
     pts = expand_points(_preset(img2occ=img))
     assert [p.overrides[-1] for p in pts[1:]] == [
@@ -95,7 +101,7 @@ def test_img2occ_accuracy_knobs_write_their_overrides():
         "stage.model.feature_stride=4",
         "stage.model.backproject_weight=0.0",
     ]
-    assert pts[1].point_id == "img2occ__fine_semantics-False"
+    assert pts[1].point_id == "img2occ__fine_semantics-False__s0"
     with pytest.raises(TypeError, match="expected true or false for knob 'fine_semantics'"):
         expand_points(_preset(img2occ={**img, "knobs": {"fine_semantics": [1]}}))
 
@@ -119,7 +125,52 @@ def test_upstream_checkpoints_go_to_train_and_eval(tmp_path):
     "preset, err, match",
     [
         ({}, ValueError, "bench.stages: expected a non-empty mapping"),
-        (_preset(planner={}), ValueError, r"bench.stages.planner: unknown stage 'planner'"),
+        (_preset(nope={}), ValueError, r"bench.stages.nope: unknown stage 'nope'"),
+        (
+            _preset(tokenizer={**TOK, "seeds": [0, 0]}),
+            ValueError,
+            r"bench.stages.tokenizer.seeds: a seed is listed twice",
+        ),
+        (
+            _preset(tokenizer={**TOK, "seeds": []}),
+            ValueError,
+            r"bench.stages.tokenizer.seeds: expected a non-empty list of int seeds",
+        ),
+        (
+            _preset(
+                tokenizer={
+                    **TOK,
+                    "ranking": {
+                        "budget": {"max_steps": 9},
+                        "points": ["default", "codebook_size-7", "codebook_size-64"],
+                    },
+                }
+            ),
+            ValueError,
+            r"bench.stages.tokenizer.ranking.points: 'codebook_size-7' is not a point",
+        ),
+        (
+            _preset(
+                tokenizer={**TOK, "ranking": {"budget": {"max_steps": 9}, "points": ["default"]}}
+            ),
+            ValueError,
+            r"bench.stages.tokenizer.ranking.points: expected at least 3 point names",
+        ),
+        (
+            _preset(world_model={**WM, "knobs": {"scenario_library": [True]}}),
+            ValueError,
+            r"knobs.scenario_library: scenario_library=true needs the bench key",
+        ),
+        (
+            _preset(planner={"windows": 0}),
+            ValueError,
+            r"bench.stages.planner.windows: expected an int >= 1",
+        ),
+        (
+            _preset(planner={"budget": {"max_steps": 3}}),
+            ValueError,
+            r"bench.stages.planner.budget: unknown key",
+        ),
         (
             _preset(tokenizer={**TOK, "knobs": {"history": [3]}}),
             ValueError,
@@ -164,7 +215,7 @@ def test_upstream_checkpoints_go_to_train_and_eval(tmp_path):
         (
             _preset(tokenizer={**TOK, "knobs": {"codebook_size": [64, 64]}}),
             ValueError,
-            r"the point 'tokenizer__codebook_size-64' is listed twice",
+            r"the point 'tokenizer__codebook_size-64__s0' is listed twice",
         ),
     ],
 )
@@ -180,6 +231,11 @@ def test_every_knob_maps_to_a_key_of_the_stage_config():
         "world_model": "stage=world_model",
     }
     for stage, knobs in KNOBS.items():
+        if stage == "planner":  # options of the planner point, not of a training config
+            from renderworld.bench.planner_point import planner_options
+
+            assert set(knobs) <= set(planner_options([]))
+            continue
         cfg = compose_cfg([stage_keys[stage]])
         for name, knob in knobs.items():
             if knob.key != "grid":
@@ -192,24 +248,43 @@ def fake_root(tmp_path):
     (tmp_path / "data" / "renderworld_infos").mkdir(parents=True)
     tok = tmp_path / "tok.pt"
     tok.write_bytes(b"x")
-    return tmp_path / "data", tok
+    wm = tmp_path / "wm.pt"
+    wm.write_bytes(b"x")
+    return tmp_path / "data", tok, wm
 
 
-@pytest.mark.parametrize("preset, count", [("quick", 13), ("full", 27)])
-def test_shipped_presets_expand(fake_root, preset, count):
-    data, tok = fake_root
+@pytest.mark.parametrize(
+    "preset, ranking, count, ranked",
+    [("quick", False, 15, 0), ("standard", False, 23, 0), ("standard", True, 41, 18),
+     ("full", True, 89, 18)],
+)  # fmt: skip
+def test_shipped_presets_expand(fake_root, tmp_path, preset, ranking, count, ranked):
+    data, tok, wm = fake_root
     cfg = compose_cfg(
-        [f"bench={preset}", f"data_root={data}", f"tokenizer_ckpt={tok}"], config_name="bench"
-    )
+        [f"bench={preset}", f"data_root={data}", f"tokenizer_ckpt={tok}",
+         f"world_model_ckpt={wm}", f"bench.ranking={str(ranking).lower()}",
+         f"scenario_library={tmp_path}", f"heldout_root={tmp_path / 'absent'}"],
+        config_name="bench",
+    )  # fmt: skip
     pts = bench_points(cfg)
-    assert len(pts) == count
-    assert {p.stage for p in pts} == {"img2occ", "tokenizer", "world_model"}
+    assert len(pts) == count and sum(bool(p.phase) for p in pts) == ranked
+    assert {p.stage for p in pts} == {"img2occ", "tokenizer", "world_model", "planner"}
     assert str(cfg.out).endswith(f"outputs/bench/{preset}")
+    wm_points = [p for p in pts if p.stage == "world_model"]
+    # The main job's recipe: the scenario library (it exists here) in every world-model point,
+    # off only in the knob's; no held-out scoring (its folder is absent).
+    for p in wm_points:
+        roots = [o for o in p.overrides if o.startswith("stage.extra_train_roots=")]
+        assert roots[0] == f"stage.extra_train_roots=[{tmp_path}]"
+        assert roots[-1] == ("stage.extra_train_roots=[]" if p.knob == "scenario_library"
+                             else roots[0])  # fmt: skip
+        assert not any(o.startswith("bench.heldout_root") for o in p.eval_overrides)
+    assert {p.seed for p in wm_points} == {0, 1}
 
 
 def test_bench_config_errors_name_the_key(fake_root, tmp_path):
-    data, tok = fake_root
-    base = [f"data_root={data}", f"tokenizer_ckpt={tok}"]
+    data, tok, wm = fake_root
+    base = [f"data_root={data}", f"tokenizer_ckpt={tok}", f"world_model_ckpt={wm}"]
     cfg = compose_cfg([*base, "+bogus=1"], config_name="bench")
     with pytest.raises(ValueError, match="bogus: unknown bench key"):
         bench_points(cfg)
@@ -218,6 +293,12 @@ def test_bench_config_errors_name_the_key(fake_root, tmp_path):
         bench_points(cfg)
     cfg = compose_cfg([*base, f"tokenizer_ckpt={tmp_path / 'no.pt'}"], config_name="bench")
     with pytest.raises(ValueError, match="tokenizer_ckpt: .* does not exist"):
+        bench_points(cfg)
+    cfg = compose_cfg([*base, f"world_model_ckpt={tmp_path / 'no.pt'}"], config_name="bench")
+    with pytest.raises(ValueError, match="world_model_ckpt: .* does not exist"):
+        bench_points(cfg)
+    cfg = compose_cfg([*base, "bench.ranking=1"], config_name="bench")
+    with pytest.raises(ValueError, match="bench.ranking: expected true or false"):
         bench_points(cfg)
     cfg = compose_cfg([*base, "+bench.extra=1"], config_name="bench")
     with pytest.raises(ValueError, match=r"bench.extra: unknown preset key"):
@@ -268,7 +349,9 @@ def test_sweep_reuses_measured_points_and_reruns_changed_ones(tmp_path):
     first = run_sweep(pts, tmp_path, infer_frames=3, **quiet)
     assert calls == [p.point_id for p in pts]
     assert not any(r["reused"] for r in first)
-    stored = json.loads((tmp_path / "points" / "tokenizer__default" / "result.json").read_text())
+    stored = json.loads(
+        (tmp_path / "points" / "tokenizer__default__s0" / "result.json").read_text()
+    )
     assert stored["fingerprint"] == point_fingerprint(pts[0], 3)
 
     calls.clear()
@@ -279,7 +362,7 @@ def test_sweep_reuses_measured_points_and_reruns_changed_ones(tmp_path):
     # A changed budget re-measures every point; one changed knob value only that point.
     tok2 = {**TOK, "knobs": {"codebook_size": [64, 512], "latent_size": [[50, 50]]}}
     run_sweep(expand_points(_preset(tokenizer=tok2)), tmp_path, infer_frames=3, **quiet)
-    assert calls == ["tokenizer__codebook_size-512"]
+    assert calls == ["tokenizer__codebook_size-512__s0", "tokenizer__codebook_size-512__s1"]
     calls.clear()
     run_sweep(pts, tmp_path, infer_frames=3, overwrite=True, **quiet)
     assert calls == [p.point_id for p in pts]
@@ -289,13 +372,13 @@ def test_sweep_reuses_measured_points_and_reruns_changed_ones(tmp_path):
 
 # ---------------------------------------------------------------------- writers
 def _synthetic(stage="tokenizer"):
-    def res(knob, value, miou, train_s, infer_ms):
+    def res(knob, value, miou, train_s, infer_ms, seed=0, phase="", steps=100):
         return {
-            "stage": stage, "knob": knob, "value": value,
+            "stage": stage, "knob": knob, "value": value, "seed": seed, "phase": phase,
             "knob_value": format_value(value) if value else "",
-            "knob_values": {"codebook_size": "256"}, "steps": 100, "max_steps": 100,
+            "knob_values": {"codebook_size": "256"}, "steps": steps, "max_steps": steps,
             "max_minutes": 1.5, "train_s": train_s, "train_wall_s": train_s + 3, "eval_s": 2.0,
-            "infer_ms": infer_ms, "infer_frames": 5, "peak_rss_mib": 600.0, "params": 1000,
+            "infer_ms": infer_ms, "infer_frames": 5, "peak_rss_mib": 600.0 + seed, "params": 1000,
             "grid": "coarse", "experiment": "tokenizer_mini", "fingerprint": "f",
             "metrics": {"val/miou": miou, "val/iou": 0.9},
         }  # fmt: skip
@@ -305,37 +388,73 @@ def _synthetic(stage="tokenizer"):
         res("default", None, 0.40, 40.0, 10.0),
         res("codebook_size", 1024, 0.35, 80.0, 30.0),
         res("latent_size", [50, 50], float("nan"), 10.0, 5.0),
+        # second seeds: the default moves by 0.02, K = 64 by 0.04, K = 1024 by 0.10
+        res("codebook_size", 64, 0.34, 22.0, 8.0, seed=1),
+        res("default", None, 0.42, 42.0, 10.0, seed=1),
+        res("codebook_size", 1024, 0.45, 82.0, 30.0, seed=1),
+        res("latent_size", [50, 50], float("nan"), 10.0, 5.0, seed=1),
     ]
 
 
-def test_table_puts_the_default_first_with_ratios_against_it():
+def test_table_shows_seed_means_and_spread_and_calls_small_deltas_no_difference():
     rows = result_rows(_synthetic())
     table = stage_table(rows, "tokenizer")
     lines = [line for line in table.splitlines() if line.startswith("| ")]
-    assert lines[1].startswith("| **default** (codebook_size=256) | 40.00 | +0.00 |")
+    assert len(lines) == 5  # header + one row per point, seeds merged
+    # default: mean 41.00, ± half the range 1.00; train 41 s
+    assert lines[1].startswith("| **default** (codebook_size=256) | 41.00 | 1.00 | +0.00 |")
+    # K = 64: mean 32.00, Δ -9.00 beyond both ranges (4.00 and 2.00)
     assert (
-        "| codebook_size=64 | 30.00 | -10.00 | 90.00 | 100 | 20 | 0.50× | 8.0 | 0.80× |"
+        "| codebook_size=64 | 32.00 | 2.00 | -9.00 | 90.00 | 100 | 21 | 0.51× | 8.0 | 0.80× |"
         in (lines[2])
     )
-    assert "| codebook_size=1024 | 35.00 | -5.00 |" in lines[3]
-    assert "| 80 | 2.00× | 30.0 | 3.00× |" in lines[3]
-    assert lines[4].startswith("| latent_size=50x50 | – | – |")  # NaN metric shown, not dropped
-    assert "100 steps, capped at 1.5 min" in table
+    # K = 1024: mean 40.00, Δ -1.00 within its own range 10.00: no difference
+    assert "| codebook_size=1024 | 40.00 | 5.00 | -1.00 (no difference) |" in lines[3]
+    assert "| 81 | 1.98× | 30.0 | 3.00× | 601 |" in lines[3]  # peak RSS: the larger seed's
+    assert lines[4].startswith("| latent_size=50x50 | – | – | – |")  # NaN metric shown
+    assert "100 steps, capped at 1.5 min" in table and "seeds per point: 2" in table
+    assert "Ranking not claimed" not in table
+    unclaimed = [{**r, "claimed": False} for r in rows]
+    assert "**Ranking not claimed**" in stage_table(unclaimed, "tokenizer")
+
+
+def test_ranking_check_compares_orders_and_ignores_ties_within_the_spread():
+    budget = _synthetic()[:3] + _synthetic()[4:7]  # default 41, K=64 32, K=1024 40 (tie w/ def.)
+    full = [
+        {**r, "phase": RANKING, "max_steps": 700, "metrics": {"val/miou": m, "val/iou": 0.9}}
+        for r, m in zip(budget, (0.55, 0.50, 0.60, 0.55, 0.50, 0.60), strict=True)
+    ]  # rows K=64, default, K=1024 per seed; at 700 steps: K=1024 60 > K=64 55 > default 50
+    rows = result_rows(budget + full)
+    chk = ranking_check(rows, "tokenizer")
+    assert chk["budget_order"] == ["default", "codebook_size=1024", "codebook_size=64"]
+    assert chk["full_order"] == ["codebook_size=1024", "codebook_size=64", "default"]
+    # default > K=64 at the budget (beyond the spread) is reversed at 700 steps: contradiction;
+    # default vs K=1024 was a tie at the budget: not one.
+    assert chk["contradictions"] == [("codebook_size=64", "default")] and not chk["holds"]
+    assert "does not hold" in ranking_text(rows, "tokenizer")
+    same = [
+        {**r, "metrics": {"val/miou": m, "val/iou": 0.9}}
+        for r, m in zip(full, (0.50, 0.60, 0.58, 0.50, 0.60, 0.58), strict=True)
+    ]  # the budget's order: default > K=1024 > K=64
+    chk = ranking_check(result_rows(budget + same), "tokenizer")
+    assert chk["holds"] and chk["full_steps"] == 700
+    assert ranking_check(result_rows(budget), "tokenizer") is None
 
 
 def test_outputs_csv_markdown_and_png(tmp_path):
     results = _synthetic() + _synthetic("world_model")[:2]
-    for r in results[4:]:
+    for r in results[8:]:
         r["metrics"] = {"val/model/miou_avg": 0.1, "val/model/l2_at_horizon_3s": 2.5}
-    paths = write_outputs(results, tmp_path, "title")
+    paths = write_outputs(results, tmp_path, "title", notes=["a note"])
     rows = list(csv.DictReader(paths["csv"].open()))
-    assert len(rows) == 6
+    assert len(rows) == 10 and [r["seed"] for r in rows[:8]] == ["0"] * 4 + ["1"] * 4
     assert rows[0]["metric_name"] == "val/miou" and float(rows[0]["metric"]) == 0.30
-    assert rows[4]["metric2_name"] == "val/model/l2_at_horizon_3s"
+    assert rows[8]["metric2_name"] == "val/model/l2_at_horizon_3s"
     assert math.isnan(float(rows[3]["metric"]))
     md = paths["md"].read_text()
     assert md.startswith("# title") and "**tokenizer**" in md and "**world_model**" in md
     assert "| 2.50 |" in md  # L2 in metres, not as a percentage
+    assert md.rstrip().endswith("a note")
     for stage in ("tokenizer", "world_model"):
         png = paths[f"pareto_{stage}"]
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
@@ -361,6 +480,7 @@ def test_sweep_end_to_end_on_two_tiny_tokenizer_points(converted, tmp_path):
             "budget": {"max_steps": 3, "max_minutes": 1},
             "overrides": tiny,
             "knobs": {"codebook_size": [16]},
+            "seeds": [1],
         }
     )
     pts = expand_points(preset, common=[f"dataset.data_root={root}"])
@@ -370,18 +490,39 @@ def test_sweep_end_to_end_on_two_tiny_tokenizer_points(converted, tmp_path):
     for r in results:
         assert 0.0 <= r["metrics"]["val/miou"] <= 1.0
         assert r["train_s"] > 0 and r["infer_ms"] > 0 and r["peak_rss_mib"] > 50
-        assert r["torch_threads"] == 1
+        assert r["torch_threads"] == 1 and r["seed"] == 1
+        assert 0 < r["train_cpu_s"] < r["point_cpu_s"]
     assert results[0]["knob_values"]["codebook_size"] == "32"
     assert results[1]["knob_value"] == "16"
     # The knob really reached the trained model: its checkpoint's config has it.
-    ckpt = tmp_path / "points" / "tokenizer__codebook_size-16" / "train" / "checkpoints" / "last.pt"
-    stored = OmegaConf.create(load_checkpoint(ckpt)["config"])
-    assert stored.stage.model.codebook_size == 16
-    assert (
-        tmp_path / "points" / "tokenizer__codebook_size-16" / "eval" / "eval_metrics.json"
-    ).is_file()
+    point = tmp_path / "points" / "tokenizer__codebook_size-16__s1"
+    stored = OmegaConf.create(
+        load_checkpoint(point / "train" / "checkpoints" / "last.pt")["config"]
+    )
+    assert stored.stage.model.codebook_size == 16 and stored.seed == 1  # so did the seed
+    assert (point / "eval" / "eval_metrics.json").is_file()
     again = run_sweep(pts, tmp_path, infer_frames=2, echo=log.append)
     assert all(r["reused"] for r in again)
     paths = write_outputs(again, tmp_path)
     assert Path(paths["pareto_tokenizer"]).is_file()
     assert any("reused" in line for line in log)
+
+
+def test_planner_rows_table_in_metres_and_a_latency_only_plot(tmp_path):
+    def res(knob, value, l2, ms):
+        return {
+            "stage": "planner", "knob": knob, "value": value, "seed": 0, "phase": "",
+            "knob_value": "" if value is None else str(value).lower(),
+            "knob_values": {"forecast": "true"}, "steps": 0, "max_steps": 0, "max_minutes": None,
+            "train_s": 0.0, "infer_ms": ms, "peak_rss_mib": 500.0, "params": 10,
+            "grid": "mini 50x50x4", "metrics": {"val/l2_3s": l2, "val/forecast_equal": 1.0},
+        }  # fmt: skip
+
+    results = [res("default", None, 1.83, 120.0), res("forecast", False, 1.83, 40.0),
+               res("grid", "occ3d", float("nan"), 900.0)]  # fmt: skip
+    paths = write_outputs(results, tmp_path)
+    md = paths["md"].read_text()
+    assert "no training (latency of the main job's planner)" in md
+    assert "| **default** (forecast=true) | 1.83 | – | +0.00 | 100.00 |" in md  # L2 in metres
+    assert "| forecast=false | 1.83 | – | +0.00 |" in md and "| 40.0 | 0.33× |" in md
+    assert paths["pareto_planner"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
