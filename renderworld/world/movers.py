@@ -42,7 +42,7 @@ from renderworld.constants import (
     OCC3D_GRID,
     GridSpec,
 )
-from renderworld.world.baselines import constant_turn_rate_poses, warp_along_poses
+from renderworld.world.baselines import _as_torch, constant_turn_rate_poses, warp_along_poses
 
 __all__ = [
     "MAX_SPEED_MPS",
@@ -59,14 +59,6 @@ MAX_SPEED_MPS: dict[int, float] = {cls: 15.0 for cls in MOVABLE_CLASS_IDS} | {
     OCC3D_CLASSES.index("pedestrian"): 3.0
 }
 _EIGHT = np.ones((3, 3), dtype=bool)
-
-
-def _as_torch(x, name: str) -> tuple[torch.Tensor, bool]:
-    if isinstance(x, np.ndarray):
-        return torch.from_numpy(x), True
-    if isinstance(x, torch.Tensor):
-        return x, False
-    raise TypeError(f"{name}: expected a numpy array or torch tensor, got {type(x).__name__}")
 
 
 def movable_mask(occupancy: torch.Tensor) -> torch.Tensor:
