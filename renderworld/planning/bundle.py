@@ -9,14 +9,16 @@ Format (``schema_version`` 2), a plain dict saved with ``torch.save`` and read w
       "tokenizer":   {"kind": str, "config": dict, "state_dict": {name: Tensor}},
       "world_model": {"kind": "tokens" | "pose_warp",
                       "config": dict (WorldModelConfig.to_dict()), "state_dict": {...},
-                      "options": {} (tokens) | {"anchors": str, "grid": {"name": str,
-                                  "range_min": [3], "range_max": [3], "shape": [3]}}},
+                      "options": {} (tokens) | {"anchors": str, "movers": str,
+                                  "grid": {"name": str, "range_min": [3], "range_max": [3],
+                                  "shape": [3]}}},
     }
 
 ``kind`` ``"tokens"`` is :class:`renderworld.world.WorldModel`, ``"pose_warp"``
-:class:`renderworld.world.pose.PoseWarpWorldModel` (its pose head's anchors and the occupancy
-grid its warps use are the options). Bundles of ``schema_version`` 1 (token world models only,
-no ``kind`` / ``options``) still load.
+:class:`renderworld.world.pose.PoseWarpWorldModel` (its pose head's anchors, how its forecast
+moves other road users and the occupancy grid its warps use are the options). Bundles of
+``schema_version`` 1 (token world models only, no ``kind`` / ``options``) still load; pose-warp
+options without ``movers`` (bundles written before it existed) load as ``"static"``.
 
 The tokenizer is rebuilt through a registry (``register_tokenizer``), never by importing a
 class named in the file. Writes are atomic (temp file in the same folder, fsync, rename);
@@ -44,6 +46,7 @@ from renderworld.planning.pose_warp import default_grid, tokenizer_grid_shape
 from renderworld.tokenizer import SceneTokenizer, build_tokenizer
 from renderworld.world.config import WorldModelConfig
 from renderworld.world.model import WorldModel
+from renderworld.world.movers import MOVERS
 from renderworld.world.pose import ANCHORS, PoseWarpWorldModel
 
 __all__ = [
@@ -174,7 +177,8 @@ def _world_model_options(world_model, tokenizer, grid: GridSpec | None) -> tuple
             grid = default_grid(shape)
         if not isinstance(grid, GridSpec):
             raise TypeError(f"grid: expected a GridSpec or None, got {type(grid).__name__}")
-        return "pose_warp", {"anchors": world_model.pose.anchors, "grid": _grid_dict(grid)}
+        options = {"anchors": world_model.pose.anchors, "movers": world_model.movers}
+        return "pose_warp", {**options, "grid": _grid_dict(grid)}
     if isinstance(world_model, WorldModel):
         return "tokens", {}
     raise TypeError(
@@ -314,10 +318,15 @@ def load_planner(
         )
     where = f"ckpt_path {path}: world_model options"
     if wm_kind == "pose_warp":
-        _require_keys(options, {"anchors", "grid"}, where)
+        options = {"movers": "static", **options} if isinstance(options, dict) else options
+        _require_keys(options, {"anchors", "movers", "grid"}, where)
         if options["anchors"] not in ANCHORS:
             raise ValueError(
                 f"{where}: anchors: expected one of {ANCHORS}, got {options['anchors']!r}"
+            )
+        if options["movers"] not in MOVERS:
+            raise ValueError(
+                f"{where}: movers: expected one of {MOVERS}, got {options['movers']!r}"
             )
         grid = _grid_of(options["grid"], f"{where}: grid")
     else:
@@ -346,7 +355,9 @@ def load_planner(
     try:
         config = WorldModelConfig.from_dict(wm["config"])
         if wm_kind == "pose_warp":
-            world_model = PoseWarpWorldModel(config, anchors=options["anchors"])
+            world_model = PoseWarpWorldModel(
+                config, anchors=options["anchors"], movers=options["movers"]
+            )
         else:
             world_model = WorldModel(config)
     except (TypeError, ValueError) as err:

@@ -11,11 +11,10 @@ stage: the planner *is* the model the stage scores.
 2. The pose head predicts the future poses [B, S, 3] from the history poses, the command and the
    current frame's bird's-eye view; the trajectory is their positions. A trajectory-only plan
    stops here: no encode, no token network, no decode.
-3. Forecast: the current frame warped along the predicted poses; the history frames t-H+1..t-1
-   brought into the current frame (:func:`renderworld.world.pose.align_history`); both encoded
-   (H-1+S frames in one batch); the token network scores the future codes; their argmax is
-   decoded; the forecast takes the warp where its source lies on the current grid and, elsewhere,
-   the decoded classes the current frame holds (free otherwise).
+3. Forecast: :func:`renderworld.world.forecast.pose_warp_forecast`, the one forecaster the
+   stage scores too (the current frame - its movers moved first when the model's ``movers`` is
+   ``object_cv`` - warped along the predicted poses, the aligned history and the warped frames
+   encoded in one batch, the token network, the decode, the composition).
 
 The aligned history depends on the current frame's pose, so a streaming session cannot reuse
 encodes across frames: it keeps raw frames and runs these steps on each plan.
@@ -26,9 +25,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from renderworld.constants import FREE_ID, NUM_OCC3D_CLASSES, OCC3D_GRID, GridSpec
-from renderworld.world.baselines import warp_along_poses
-from renderworld.world.pose import align_history
+from renderworld.constants import OCC3D_GRID, GridSpec
+from renderworld.world.forecast import pose_warp_forecast
 
 __all__ = ["default_grid", "forecast_from_poses", "history_poses", "tokenizer_grid_shape"]
 
@@ -70,10 +68,28 @@ def history_poses(displacements: np.ndarray, yaws: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(out.astype(np.float32))
 
 
-def _bev_grid(grid: GridSpec) -> GridSpec:
-    """The grid with one z level (the inside-the-grid mask is the same at every z)."""
-    lo, hi = list(grid.range_min), list(grid.range_max)
-    return GridSpec(f"{grid.name}-bev", tuple(lo), tuple(hi), (grid.shape[0], grid.shape[1], 1))
+class _PlannerCodec:
+    """The planner's :class:`~renderworld.world.forecast.FrameCodec`: one encode of the aligned
+    history and the warped frames together; the milliseconds each call takes are summed."""
+
+    def __init__(self, planner):
+        self.planner = planner
+        self.ms = {"encode": 0.0, "decode": 0.0}
+
+    def encode(self, aligned: torch.Tensor, warped: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        b, h1, s = aligned.shape[0], aligned.shape[1], warped.shape[1]
+        t0 = self.planner._sync()
+        codes = self.planner.encode(torch.cat([aligned.flatten(0, 1), warped.flatten(0, 1)]))
+        codes = codes.indices
+        self.ms["encode"] += 1e3 * (self.planner._sync() - t0)
+        hist_codes = codes[: b * h1].view(b, h1, *codes.shape[1:])
+        return hist_codes, codes[b * h1 :].view(b, s, *codes.shape[1:])
+
+    def decode(self, codes: torch.Tensor) -> torch.Tensor:
+        t0 = self.planner._sync()
+        out = self.planner._decode_codes(codes.flatten(0, 1))
+        self.ms["decode"] += 1e3 * (self.planner._sync() - t0)
+        return out.view(*codes.shape[:2], *out.shape[1:])
 
 
 def forecast_from_poses(planner, occ, hist, poses, command) -> tuple[torch.Tensor, dict]:
@@ -87,38 +103,15 @@ def forecast_from_poses(planner, occ, hist, poses, command) -> tuple[torch.Tenso
         command: [B] int64.
 
     Returns:
-        (forecast on the device, ``{"encode": ms, "world_model": ms, "decode": ms}``).
+        (forecast on the device, ``{"encode": ms, "world_model": ms, "decode": ms}``; the
+        warp, the alignment and the token network count as ``world_model``).
     """
-    model, grid = planner.world_model, planner.grid
-    b, h = occ.shape[:2]
-    s = poses.shape[1]
+    codec = _PlannerCodec(planner)
     t0 = planner._sync()
-    current = occ[:, h - 1]
-    warped = warp_along_poses(current, poses.double(), grid)  # [B, S, X, Y, Z]
-    ones = torch.ones(current.shape[:3], dtype=torch.uint8, device=occ.device)
-    inside = warp_along_poses(ones[..., None], poses.double(), _bev_grid(grid), fill=0)[..., 0]
-    aligned = align_history(occ[:, : h - 1], hist[:, : h - 1], grid)
-    t1 = planner._sync()
-    frames = torch.cat([aligned.flatten(0, 1), warped.flatten(0, 1)])
-    codes = planner.encode(frames).indices
-    t2 = planner._sync()
-    hist_codes = codes[: b * (h - 1)].view(b, h - 1, *codes.shape[1:])
-    base_codes = codes[b * (h - 1) :].view(b, s, *codes.shape[1:])
-    seq = torch.cat([hist_codes, base_codes], dim=1)
-    seq_poses = torch.cat([hist[:, : h - 1], poses], dim=1)
-    with planner._world_model_threads():
-        logits = model(seq, seq_poses, command)
-    future = torch.stack([lg.argmax(dim=2) for lg in logits], dim=2)  # [B, S, G, h, w]
-    t3 = planner._sync()
-    net = planner._decode_codes(future.flatten(0, 1)).view(warped.shape).to(warped.dtype)
-    # Newly revealed space continues what the current frame shows: decoded classes the current
-    # frame does not hold there are left free.
-    seen = torch.zeros(b, NUM_OCC3D_CLASSES, dtype=torch.bool, device=occ.device)
-    seen.scatter_(1, current.flatten(1).long(), True)
-    keep = seen.gather(1, net.flatten(1).long()).view(net.shape)
-    fill = torch.where(keep, net, torch.full_like(net, FREE_ID))
-    forecast = torch.where(inside[..., None].bool(), warped, fill)
-    t4 = planner._sync()
-    ms = {"encode": 1e3 * (t2 - t1), "world_model": 1e3 * (t1 - t0 + t3 - t2),
-          "decode": 1e3 * (t4 - t3)}  # fmt: skip
-    return forecast, ms
+    fc = pose_warp_forecast(
+        planner.world_model, occ, hist, poses, command, planner.grid, codec,
+        network_scope=planner._world_model_threads,
+    )  # fmt: skip
+    total = 1e3 * (planner._sync() - t0)
+    rest = total - codec.ms["encode"] - codec.ms["decode"]
+    return fc.forecast, {**codec.ms, "world_model": rest}

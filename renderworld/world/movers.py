@@ -46,13 +46,20 @@ from renderworld.world.baselines import _as_torch, constant_turn_rate_poses, war
 
 __all__ = [
     "MAX_SPEED_MPS",
+    "MOVERS",
     "bev_components",
     "gt_movers_reference",
     "movable_mask",
     "object_constant_velocity_forecast",
+    "object_cv_frames",
     "object_velocities",
     "remove_movers",
+    "warp_frames_along_poses",
 ]
+
+#: How a pose-warp forecast moves other road users (``stage.movers``): ``static`` (nothing
+#: moves) or ``object_cv`` (:func:`object_cv_frames`).
+MOVERS = ("static", "object_cv")
 
 #: Gate of the velocity matching, metres per second, per movable class (default: vehicles).
 MAX_SPEED_MPS: dict[int, float] = {cls: 15.0 for cls in MOVABLE_CLASS_IDS} | {
@@ -171,6 +178,81 @@ def _moved_frames(frame: np.ndarray, comps: list, vel: np.ndarray, steps: int, d
     return out
 
 
+def _check_history(history_occupancy, history_poses, grid: GridSpec, lag: int):
+    """Batched torch views of a history and its poses (shapes checked; see the callers)."""
+    occ, was_np = _as_torch(history_occupancy, "history_occupancy")
+    poses, _ = _as_torch(history_poses, "history_poses")
+    if occ.dim() not in (4, 5) or tuple(occ.shape[-3:]) != tuple(grid.shape):
+        raise ValueError(
+            f"history_occupancy: expected [(B,) T, {', '.join(map(str, grid.shape))}], got "
+            f"{tuple(occ.shape)}"
+        )
+    batched = occ.dim() == 5
+    occ_b = occ if batched else occ[None]
+    p_b = poses if batched else poses[None]
+    b, t = occ_b.shape[:2]
+    if tuple(p_b.shape) != (b, t, 3):
+        raise ValueError(f"history_poses: expected [(B,) {t}, 3], got {tuple(poses.shape)}")
+    if not isinstance(lag, int) or not 1 <= lag < t:
+        raise ValueError(f"lag: expected an int in [1, {t - 1}], got {lag!r}")
+    return occ_b, p_b, batched, was_np
+
+
+def object_cv_frames(
+    history_occupancy,
+    history_poses,
+    steps: int = FUTURE_FRAMES,
+    grid: GridSpec = OCC3D_GRID,
+    lag: int = 2,
+    dt: float = KEYFRAME_DT,
+    min_shift_voxels: float = 1.0,
+) -> torch.Tensor:
+    """The current frame with its movers moved at their own velocities, still in the current
+    ego frame (history only; matching rule in the module docstring).
+
+    Frame k (1..S): each movable component of the current frame moved by its velocity times
+    ``k * dt`` (whole voxels; what moves off the grid is gone), the rest of the frame unchanged
+    and the movers' old voxels free. Warping frame k into future ego frame k
+    (:func:`~renderworld.world.baselines.warp_along_poses`) gives a forecast.
+
+    Args:
+        history_occupancy: [B, T, X, Y, Z] integer labels of frames t-T+1..t (the last is the
+            current frame), each in its own ego frame, on ``grid`` (torch or numpy).
+        history_poses: [B, T, 3] (x, y, yaw) of those frames in the current ego frame.
+        steps: S future frames.
+        grid: the occupancy grid.
+        lag: velocities are measured against frame ``t - lag`` (1 <= lag < T).
+        dt: seconds between frames.
+        min_shift_voxels: see :func:`object_velocities`.
+
+    Returns:
+        [B, S, X, Y, Z] torch tensor, the dtype and device of ``history_occupancy``.
+    """
+    occ_b, p_b, batched, _ = _check_history(history_occupancy, history_poses, grid, lag)
+    if not batched:
+        raise ValueError(
+            f"history_occupancy: expected [B, T, X, Y, Z], got {tuple(occ_b.shape[1:])}"
+        )
+    t = occ_b.shape[1]
+    frames = occ_b.detach().cpu().numpy()
+    past_poses = p_b.detach().cpu().double().numpy()[:, t - 1 - lag]
+    outs = []
+    for i in range(occ_b.shape[0]):
+        comps = bev_components(frames[i, t - 1], grid)
+        past = bev_components(frames[i, t - 1 - lag], grid)
+        vel = object_velocities(comps, past, past_poses[i], lag * dt, grid, min_shift_voxels)
+        outs.append(torch.from_numpy(_moved_frames(frames[i, t - 1], comps, vel, steps, dt, grid)))
+    return torch.stack(outs).to(occ_b.device)
+
+
+def warp_frames_along_poses(frames: torch.Tensor, poses: torch.Tensor, grid: GridSpec):
+    """Frame k of ``frames`` [B, S, X, Y, Z] (current ego frame) warped into the ego frame of
+    pose k of ``poses`` [B, S, 3]: [B, S, X, Y, Z] (:func:`warp_along_poses`, frame by frame)."""
+    b, s = frames.shape[:2]
+    one = poses.reshape(b * s, 1, 3).to(frames.device)
+    return warp_along_poses(frames.flatten(0, 1), one, grid)[:, 0].view(frames.shape)
+
+
 def object_constant_velocity_forecast(
     history_occupancy,
     history_poses,
@@ -182,10 +264,8 @@ def object_constant_velocity_forecast(
 ):
     """The object constant-velocity warp (history only; matching rule in the module docstring).
 
-    Future frame k (1..S): the current frame with each movable component moved by its velocity
-    times ``k * dt`` (in the current ego frame, whole voxels; what moves off the grid is gone),
-    the rest of the frame unchanged and the movers' old voxels free, then warped into the
-    constant-turn-rate pose k (:func:`~renderworld.world.baselines.warp_along_poses`).
+    Future frame k (1..S): :func:`object_cv_frames`' frame k warped into the constant-turn-rate
+    pose k (:func:`~renderworld.world.baselines.warp_along_poses`).
 
     Args:
         history_occupancy: [T, X, Y, Z] or [B, T, X, Y, Z] integer labels of frames
@@ -201,33 +281,10 @@ def object_constant_velocity_forecast(
     Returns:
         [S, X, Y, Z] or [B, S, X, Y, Z], the dtype and device of ``history_occupancy``.
     """
-    occ, was_np = _as_torch(history_occupancy, "history_occupancy")
-    poses, _ = _as_torch(history_poses, "history_poses")
-    batched = occ.dim() == 5
-    if occ.dim() not in (4, 5) or tuple(occ.shape[-3:]) != tuple(grid.shape):
-        raise ValueError(
-            f"history_occupancy: expected [(B,) T, {', '.join(map(str, grid.shape))}], got "
-            f"{tuple(occ.shape)}"
-        )
-    occ_b = occ if batched else occ[None]
-    p_b = poses if batched else poses[None]
-    b, t = occ_b.shape[:2]
-    if tuple(p_b.shape) != (b, t, 3):
-        raise ValueError(f"history_poses: expected [(B,) {t}, 3], got {tuple(poses.shape)}")
-    if not isinstance(lag, int) or not 1 <= lag < t:
-        raise ValueError(f"lag: expected an int in [1, {t - 1}], got {lag!r}")
+    occ_b, p_b, batched, was_np = _check_history(history_occupancy, history_poses, grid, lag)
     ctr = constant_turn_rate_poses(p_b.double(), steps)  # [B, S, 3]
-    frames = occ_b.detach().cpu().numpy()
-    past_poses = p_b.detach().cpu().double().numpy()[:, t - 1 - lag]
-    outs = []
-    for i in range(b):
-        comps = bev_components(frames[i, t - 1], grid)
-        past = bev_components(frames[i, t - 1 - lag], grid)
-        vel = object_velocities(comps, past, past_poses[i], lag * dt, grid, min_shift_voxels)
-        moved = torch.from_numpy(_moved_frames(frames[i, t - 1], comps, vel, steps, dt, grid))
-        moved = moved.to(occ.device)
-        outs.append(warp_along_poses(moved, ctr[i][:, None].to(occ.device), grid)[:, 0])
-    out = torch.stack(outs)
+    moved = object_cv_frames(occ_b, p_b, steps, grid, lag, dt, min_shift_voxels)
+    out = warp_frames_along_poses(moved, ctr, grid)
     out = out if batched else out[0]
     return out.numpy() if was_np else out
 

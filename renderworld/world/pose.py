@@ -22,6 +22,7 @@ from renderworld.constants import COMMANDS, FREE_ID, GridSpec
 from renderworld.world.baselines import constant_turn_rate_poses, warp_along_poses
 from renderworld.world.config import WorldModelConfig
 from renderworld.world.model import WorldModel
+from renderworld.world.movers import MOVERS
 
 __all__ = [
     "ANCHORS",
@@ -259,13 +260,25 @@ class PoseWarpWorldModel(nn.Module):
             exactly this sequence's length).
         copy_bonus: initial logit bonus of the warped code.
         anchors: the pose head's extrapolations (:data:`ANCHORS`).
+        movers: how the forecast moves other road users (``"static"`` or ``"object_cv"``,
+            :mod:`renderworld.world.forecast`); no weights depend on it.
     """
 
-    def __init__(self, config: WorldModelConfig, copy_bonus: float = 2.0, anchors: str = "ctr"):
+    def __init__(
+        self,
+        config: WorldModelConfig,
+        copy_bonus: float = 2.0,
+        anchors: str = "ctr",
+        movers: str = "static",
+    ):
         super().__init__()
         if not isinstance(config, WorldModelConfig):
             raise TypeError(f"config: expected WorldModelConfig, got {type(config).__name__}")
+        if movers not in MOVERS:
+            raise ValueError(f"movers: expected one of {MOVERS}, got {movers!r}")
         self.config = config
+        #: How the forecast moves other road users (:data:`renderworld.world.movers.MOVERS`).
+        self.movers = movers
         self.net = WorldModel(config)
         self.pose = PoseHead(config.history_frames, config.future_frames, anchors=anchors)
         self.copy_bonus = nn.Parameter(torch.full((config.num_codebooks,), float(copy_bonus)))

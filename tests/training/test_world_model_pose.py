@@ -36,8 +36,12 @@ def _stage(wm_overrides, tmp_path):
     return stage, model, val_set
 
 
-def test_changing_the_future_ground_truth_leaves_the_forecast_unchanged(wm_overrides, tmp_path):
+@pytest.mark.parametrize("movers", ["static", "object_cv"])
+def test_changing_the_future_ground_truth_leaves_the_forecast_unchanged(
+    wm_overrides, tmp_path, movers
+):
     stage, model, val_set = _stage(wm_overrides, tmp_path)
+    model.movers = movers
     batch = next(iter(DataLoader(val_set, batch_size=2)))
     setting = stage.eval_settings[0]
     yaw, yaw2 = {}, {}
@@ -142,7 +146,8 @@ def _requests(batch, n: int) -> list:
     return out
 
 
-def test_bundled_planner_reproduces_the_stage_forecast(wm_overrides, tmp_path):
+@pytest.mark.parametrize("movers", ["static", "object_cv"])
+def test_bundled_planner_reproduces_the_stage_forecast(wm_overrides, tmp_path, movers):
     """plan() on the bundled pose-warp model gives the stage's own evaluation outputs: the
     planner is the model, not an approximation."""
     import numpy as np
@@ -150,6 +155,7 @@ def test_bundled_planner_reproduces_the_stage_forecast(wm_overrides, tmp_path):
     from renderworld.planning import PlannerSession, load_planner, save_planner_bundle
 
     stage, model, val_set = _stage(wm_overrides, tmp_path)
+    model.movers = movers
     batch = next(iter(DataLoader(val_set, batch_size=2)))
     fc, traj = stage.forecast(model, batch, stage.eval_settings[0], None)
     tok = stage._tokenizer_on(torch.device("cpu"), None)
@@ -157,6 +163,7 @@ def test_bundled_planner_reproduces_the_stage_forecast(wm_overrides, tmp_path):
     reqs = _requests(batch, 2)
     for fast in (False, True):  # the reference codec (the stage's) and the fast one
         planner = load_planner(path, fast=fast)
+        assert planner.world_model.movers == movers
         res = planner.plan_batch(reqs)
         for i, r in enumerate(res):
             np.testing.assert_array_equal(r.trajectory, traj["model"][i].numpy())

@@ -27,8 +27,19 @@ from renderworld.world import (
     WorldModel,
     WorldModelConfig,
 )
+from renderworld.world.forecast import check_movers
 
-__all__ = ["CheckpointModels"]
+__all__ = ["CheckpointModels", "with_movers"]
+
+
+def with_movers(model: nn.Module, cfg: Any) -> nn.Module:
+    """``model`` with the run's ``stage.movers`` when the command line sets one (evaluating a
+    checkpoint: how the forecast moves others is no weight, so any pose-warp checkpoint can be
+    scored either way); unchanged when it is null (the checkpoint's own)."""
+    movers = cfg.stage.get("movers")
+    if movers is not None and hasattr(model, "movers"):
+        model.movers = check_movers(str(movers), "stage.movers")
+    return model
 
 
 class CheckpointModels:
@@ -48,6 +59,7 @@ class CheckpointModels:
         stored = load_checkpoint(ckpt, expected_stage="world_model")["config"]
         self.forecaster = forecaster_of(OmegaConf.create(stored))
         model = self._model_of_checkpoint(ckpt, mine, "ckpt")
+        model = with_movers(model, cfg)
         for s in self.eval_settings:
             if s.ckpt:  # the Camera setting's own model (camera_ckpt), loaded strictly
                 self.setting_models[s.key] = self._load_setting_model(s, cfg)
@@ -75,7 +87,7 @@ class CheckpointModels:
 
         ckpt = str(s.ckpt)
         mine = world_model_config(cfg, self.tokenizer_of(s.tokenizer).cfg)
-        model = self._model_of_checkpoint(ckpt, mine, "camera_ckpt", s.tokenizer)
+        model = with_movers(self._model_of_checkpoint(ckpt, mine, "camera_ckpt", s.tokenizer), cfg)
         state = load_checkpoint(ckpt, expected_stage="world_model")["model"]
         check_state_dict_keys(model, state, source=f"camera_ckpt {ckpt!r}")
         model.load_state_dict(state, strict=True)

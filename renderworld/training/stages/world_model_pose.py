@@ -2,17 +2,14 @@
 
 Training (teacher forcing): the pose head is fitted to the ground-truth future poses
 (:func:`renderworld.world.pose.pose_loss`); the token network reads the history brought into
-the current ego frame and the current frame warped along the **ground-truth** future poses, and
-is fitted to the future frames' codes (cross-entropy). Loss = token CE + ``lambda_pose`` x pose
-loss.
+the current ego frame and the current frame warped along the **ground-truth** future poses (its
+movers moved first when the model's ``movers`` is ``object_cv``), and is fitted to the future
+frames' codes (cross-entropy). Loss = token CE + ``lambda_pose`` x pose loss.
 
 Forecast (test time, leak-free): poses from the pose head (history poses, current command,
-current frame); the current frame warped along them (``model, warp only``); the token network
-on the aligned history and those warped frames, decoded (``model, tokens only``); the forecast
-``model`` takes the warp wherever its source lies on the current grid and, where it does not
-(newly revealed space), the decoded tokens of the classes the current frame holds (free
-otherwise). Only ``history_poses``, the history occupancy and
-``command`` of a batch are read.
+current frame), then :func:`renderworld.world.forecast.pose_warp_forecast` - the one
+forecaster the planner calls too - with this stage's tokenizer and token cache. Only
+``history_poses``, the history occupancy and ``command`` of a batch are read.
 """
 
 from __future__ import annotations
@@ -22,10 +19,10 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from renderworld.constants import COMMANDS, FREE_ID, NUM_OCC3D_CLASSES
+from renderworld.constants import COMMANDS
 from renderworld.tokenizer import Tokens
 from renderworld.training.stages import world_model_eval as wme
-from renderworld.world import warp_along_poses
+from renderworld.world.forecast import pose_warp_forecast, warp_current
 from renderworld.world.pose import align_history, pose_loss
 
 __all__ = [
@@ -100,19 +97,27 @@ def mirror_command(command: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def _aligned_history_codes(stage, batch, occ_key, source, tokenizer, device) -> torch.Tensor:
-    """Codes [B, H-1, G, h, w] of history frames t-H+1..t-1 in the current ego frame."""
+def _history_codes(stage, batch, aligned, source, tokenizer) -> torch.Tensor:
+    """Codes [B, H-1, G, h, w] of history frames t-H+1..t-1 already in the current ego frame
+    (``aligned`` [B, H-1, X, Y, Z]; cached by frame and current frame)."""
     h = stage.settings.history
-    occ, poses = batch[occ_key][:, : h - 1], batch["history_poses"][:, : h - 1]
-    b = occ.shape[0]
-    aligned = align_history(occ, poses, stage.grid).flatten(0, 1)
+    b = aligned.shape[0]
     toks = wme.frame_keys(batch, b, batch["occ"].shape[1])
     tok_key = stage.settings.tokenizer_ckpt if tokenizer is None else str(tokenizer)
     keys = [(tok_key, source, "aligned", toks[i][j], toks[i][h - 1]) for i in range(b)
             for j in range(h - 1)]  # fmt: skip
-    return encode_frames(stage, aligned, keys, device, tokenizer).view(
+    device = batch["history_poses"].device
+    return encode_frames(stage, aligned.flatten(0, 1), keys, device, tokenizer).view(
         b, h - 1, *_code_shape(stage, tokenizer)
     )
+
+
+def _aligned_history_codes(stage, batch, occ_key, source, tokenizer, device) -> torch.Tensor:
+    """Codes [B, H-1, G, h, w] of history frames t-H+1..t-1 in the current ego frame."""
+    h = stage.settings.history
+    occ, poses = batch[occ_key][:, : h - 1], batch["history_poses"][:, : h - 1]
+    aligned = align_history(occ, poses, stage.grid)
+    return _history_codes(stage, batch, aligned, source, tokenizer).to(device)
 
 
 def _code_shape(stage, tokenizer) -> tuple[int, int, int]:
@@ -157,9 +162,12 @@ def pose_teacher_forced(
 
     b = occ.shape[0]
     toks = wme.frame_keys(batch, b, occ.shape[1])
-    bases = warp_along_poses(current, fut_poses, stage.grid).flatten(0, 1)
+    movers = getattr(model, "movers", "static")
+    bases = warp_current(occ[:, :h], batch["history_poses"], fut_poses, stage.grid, movers)
+    bases = bases.flatten(0, 1)
     tok_key = st.tokenizer_ckpt if tokenizer is None else str(tokenizer)
-    keys = [(tok_key, source, "warp_gt", toks[i][h - 1], toks[i][h + k]) for i in range(b)
+    warp_key = "warp_gt" if movers == "static" else f"warp_gt_{movers}"
+    keys = [(tok_key, source, warp_key, toks[i][h - 1], toks[i][h + k]) for i in range(b)
             for k in range(f)]  # fmt: skip
     shape = _code_shape(stage, tokenizer)
     base_codes = encode_frames(stage, bases, keys, device, tokenizer).view(b, f, *shape)
@@ -182,57 +190,44 @@ def pose_teacher_forced(
     }
 
 
+class _StageCodec:
+    """The stage's :class:`~renderworld.world.forecast.FrameCodec`: its frozen tokenizer, the
+    aligned history's codes cached by frame (ground truth only), warped frames never cached."""
+
+    def __init__(self, stage: Any, batch: dict, setting: Any, device: torch.device):
+        self.stage, self.batch, self.setting, self.device = stage, batch, setting, device
+
+    def encode(self, aligned: torch.Tensor, warped: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        st, b, f = self.setting, warped.shape[0], warped.shape[1]
+        base = encode_frames(self.stage, warped.flatten(0, 1), None, self.device, st.tokenizer)
+        base = base.view(b, f, *_code_shape(self.stage, st.tokenizer))
+        return _history_codes(self.stage, self.batch, aligned, st.source, st.tokenizer), base
+
+    def decode(self, codes: torch.Tensor) -> torch.Tensor:
+        tok = self.stage._tokenizer_on(self.device, self.setting.tokenizer)
+        names, sizes = tok.cfg.codebook_names, tok.cfg.codebook_sizes
+        with torch.autocast(device_type=self.device.type, enabled=False):
+            return torch.stack(
+                [tok.decode(Tokens(codes[:, k], sizes, names)) for k in range(codes.shape[1])],
+                dim=1,
+            )
+
+
 @torch.no_grad()
 def pose_forecast(
     stage: Any, model: Any, batch: dict, setting: Any
 ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
     """Forecasts ``model`` / ``model_warp`` / ``model_net`` [B, S, X, Y, Z] and the planned
-    poses [B, S, 3] (x, y, yaw; metres, radians, current ego frame) of one setting's inputs.
+    poses [B, S, 3] (x, y, yaw; metres, radians, current ego frame) of one setting's inputs
+    (:func:`renderworld.world.forecast.pose_warp_forecast`, as the planner forecasts).
 
     Reads only the history occupancy (``setting.inputs``), ``history_poses`` and ``command``.
     """
-    st = stage.settings
-    h, f = st.history, st.future
-    occ = batch[setting.inputs]
-    hist_poses = batch["history_poses"].float()
+    h = stage.settings.history
+    history = batch[setting.inputs][:, :h]
     cmd = batch["command"].long()
-    device = hist_poses.device
-    current = occ[:, h - 1]
-    poses, _ = model.predict_poses(hist_poses, cmd, current)
-    warped = warp_along_poses(current, poses.double(), stage.grid)  # [B, S, X, Y, Z]
-    ones = torch.ones(current.shape[:3], dtype=torch.uint8, device=device)
-    inside = warp_along_poses(ones[..., None], poses.double(), _bev_grid(stage), fill=0)[..., 0]
-    b = occ.shape[0]
-    base_codes = encode_frames(stage, warped.flatten(0, 1), None, device, setting.tokenizer)
-    base_codes = base_codes.view(b, f, *_code_shape(stage, setting.tokenizer))
-    hist_codes = _aligned_history_codes(
-        stage, batch, setting.inputs, setting.source, setting.tokenizer, device
-    )
-    seq = torch.cat([hist_codes, base_codes], dim=1)
-    seq_poses = torch.cat([hist_poses[:, : h - 1], poses], dim=1)
-    logits = model(seq, seq_poses, cmd)
-    codes = torch.stack([lg.argmax(dim=2) for lg in logits], dim=2)  # [B, S, G, h, w]
-    tok = stage._tokenizer_on(device, setting.tokenizer)
-    with torch.autocast(device_type=device.type, enabled=False):
-        net = torch.stack(
-            [tok.decode(Tokens(codes[:, k], tok.cfg.codebook_sizes, tok.cfg.codebook_names))
-             for k in range(f)], dim=1,
-        ).to(warped.dtype)  # fmt: skip
-    # Newly revealed space continues what the current frame shows: decoded classes the current
-    # frame does not hold there are left free (a token decoder's stray classes would each add
-    # a present class at IoU ~0 to the mIoU).
-    seen = torch.zeros(b, NUM_OCC3D_CLASSES, dtype=torch.bool, device=device)
-    seen.scatter_(1, current.flatten(1).long(), True)
-    fill = torch.where(seen.gather(1, net.flatten(1).long()).view(net.shape), net,
-                       torch.full_like(net, FREE_ID))  # fmt: skip
-    model_fc = torch.where(inside[..., None].bool(), warped, fill)
-    return {"model": model_fc, "model_warp": warped, "model_net": net}, poses
-
-
-def _bev_grid(stage):
-    """The stage grid with one z level (the inside-the-grid mask is the same at every z)."""
-    from renderworld.constants import GridSpec
-
-    g = stage.grid
-    lo, hi = list(g.range_min), list(g.range_max)
-    return GridSpec(f"{g.name}-bev", tuple(lo), tuple(hi), (g.shape[0], g.shape[1], 1))
+    device = batch["history_poses"].device
+    poses, _ = model.predict_poses(batch["history_poses"].float(), cmd, history[:, h - 1])
+    codec = _StageCodec(stage, batch, setting, device)
+    fc = pose_warp_forecast(model, history, batch["history_poses"], poses, cmd, stage.grid, codec)
+    return {"model": fc.forecast, "model_warp": fc.warp, "model_net": fc.net}, poses

@@ -29,6 +29,7 @@ from omegaconf import OmegaConf
 from renderworld.constants import FUTURE_FRAMES
 from renderworld.data.table_cache import default_cache_root
 from renderworld.world import WorldModel, WorldModelConfig
+from renderworld.world.movers import MOVERS
 from renderworld.world.pose import ANCHORS, PoseWarpWorldModel
 
 __all__ = [
@@ -173,6 +174,7 @@ class StageSettings:
     pose_mirror: bool = False
     pose_anchors: str = "ctr"
     pose_step_weighting: str = "uniform"
+    movers: str = "static"
 
 
 def _number(s: Any, key: str, default: float) -> float:
@@ -228,6 +230,7 @@ def stage_settings(cfg: Any) -> StageSettings:
         pose_mirror=mirror,
         pose_anchors=_choice(s, "pose_anchors", "ctr", ANCHORS),
         pose_step_weighting=_choice(s, "pose_step_weighting", "uniform", POSE_STEP_WEIGHTINGS),
+        movers=_choice(s, "movers", "static", MOVERS),
     )
 
 
@@ -286,12 +289,15 @@ def build_world_model(
     """:class:`WorldModel` (``"tokens"``) or :class:`PoseWarpWorldModel` (``"pose_warp"``).
 
     ``cfg``: the run config whose ``stage.pose_anchors`` (default ``"ctr"``) the pose head uses
-    (validated by :func:`stage_settings`).
+    and whose ``stage.movers`` (default ``"static"``) the forecast applies (validated by
+    :func:`stage_settings`).
     """
     if kind != "pose_warp":
         return WorldModel(config)
-    anchors = "ctr" if cfg is None else stage_settings(cfg).pose_anchors
-    return PoseWarpWorldModel(config, anchors=anchors)
+    if cfg is None:
+        return PoseWarpWorldModel(config)
+    st = stage_settings(cfg)
+    return PoseWarpWorldModel(config, anchors=st.pose_anchors, movers=st.movers)
 
 
 def extra_train_roots(cfg: Any) -> list[tuple[Path, Path]]:
