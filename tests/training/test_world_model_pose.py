@@ -260,3 +260,27 @@ def test_a_held_out_dataset_without_a_train_split_evaluates(wm_overrides, conver
     val = stage.build_val_dataset(cfg)  # ... evaluation does not
     full = compose_cfg([*wm_overrides, f"run_dir={tmp_path}"])
     assert len(val) == len(WorldModelStage(full).build_datasets(full)[1]) > 0
+
+
+def test_a_later_validation_reuses_the_model_free_rows_and_scores_alike(wm_overrides, tmp_path):
+    """The baselines and references are scored once per validation set: a second validation
+    of the same model gives every figure of the first, and a changed model changes its rows
+    only."""
+    from renderworld.training.stages.world_model_eval import MODEL_FREE_METHODS
+
+    stage, model, val_set = _stage(wm_overrides, tmp_path)
+    loader = DataLoader(val_set, batch_size=2)
+    first = stage.compute_metrics(stage.evaluate(model, loader))
+    assert len(stage._fixed_stats) == 1
+    again = stage.compute_metrics(stage.evaluate(model, loader))
+    assert set(first) == set(again)
+    for k, v in first.items():
+        assert v == again[k] or (math.isnan(v) and math.isnan(again[k])), k
+    with torch.no_grad():
+        for p in model.pose.parameters():
+            p.add_(0.05)
+    moved = stage.compute_metrics(stage.evaluate(model, loader))
+    assert moved["model/l2_at_horizon_avg"] != first["model/l2_at_horizon_avg"]
+    for k, v in first.items():
+        if k.split("/")[0] in MODEL_FREE_METHODS:
+            assert v == moved[k] or (math.isnan(v) and math.isnan(moved[k])), k

@@ -82,6 +82,11 @@ __all__ = [
 
 FORECASTERS = tuple(m[0] for m in METHODS if m[2])
 PLANNERS = tuple(m[0] for m in METHODS if m[3])
+#: Rows that read no model (baselines and references): their figures never change in a run.
+MODEL_FREE_METHODS = (
+    "copy_paste", "warp_cv", "warp_ctr", "warp_object_cv", "cv_traj", "ctr_traj",
+    "warp_gt_pose", "warp_gt_movers",
+)  # fmt: skip
 _COLL_KEYS = ("hit", "evaluated", "gt_skipped", "outside")
 
 
