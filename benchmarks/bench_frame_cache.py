@@ -25,7 +25,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from renderworld.data import load_infos  # noqa: E402
-from renderworld.training.stages.world_model_eval import WorldModelWindows  # noqa: E402
+from renderworld.training.stages.world_model.windows import WorldModelWindows  # noqa: E402
 
 
 def _per_window_ms(ds) -> float:

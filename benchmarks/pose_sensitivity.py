@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from renderworld.constants import GRIDS  # noqa: E402
 from renderworld.data import load_infos  # noqa: E402
 from renderworld.metrics import ForecastMetric  # noqa: E402
-from renderworld.training.stages.world_model_eval import WorldModelWindows  # noqa: E402
+from renderworld.training.stages.world_model.windows import WorldModelWindows  # noqa: E402
 from renderworld.world import constant_turn_rate_poses, warp_along_poses  # noqa: E402
 
 

@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 from renderworld.cache import cache_root
 from renderworld.data.table_cache import TableCache
 from renderworld.splat import cpp_backend
-from renderworld.training.stages.world_model_settings import frame_cache_dir
+from renderworld.training.stages.world_model.settings import frame_cache_dir
 
 
 def _caches(version_dir: Path) -> dict[str, Path]:

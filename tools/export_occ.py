@@ -6,7 +6,7 @@
 Writes ``<out>/gts/<scene>/<sample_token>/labels.npz`` for every keyframe of the chosen splits
 and ``<out>/export_info.json``; train the tokenizer on them with ``stage.occ_root=<out>``.
 Thin Hydra wrapper around
-:func:`renderworld.training.stages.img2occ_export.export_pseudo_labels` (configs/export_occ.yaml).
+:func:`renderworld.training.stages.img2occ.export.export_pseudo_labels` (configs/export_occ.yaml).
 """
 
 import sys
@@ -17,7 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a clone
 import hydra  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from renderworld.training.stages.img2occ_export import export_pseudo_labels  # noqa: E402
+from renderworld.training.stages.img2occ.export import export_pseudo_labels  # noqa: E402
 
 
 @hydra.main(config_path="../configs", config_name="export_occ", version_base=None)

@@ -4,7 +4,7 @@
 
 Either forecaster (``stage.forecaster=tokens`` or ``pose_warp``, the main job's). Load the
 file with ``renderworld.planning.load_planner(FILE)``. Thin Hydra wrapper around
-:func:`renderworld.training.stages.world_model_bundle.export_planner_bundle`
+:func:`renderworld.training.stages.world_model.bundle.export_planner_bundle`
 (configs/export_planner.yaml); the main job runs it as its ``planner`` step.
 """
 
@@ -16,7 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a clone
 import hydra  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from renderworld.training.stages.world_model_bundle import export_planner_bundle  # noqa: E402
+from renderworld.training.stages.world_model.bundle import export_planner_bundle  # noqa: E402
 
 
 @hydra.main(config_path="../configs", config_name="export_planner", version_base=None)

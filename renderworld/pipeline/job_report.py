@@ -135,7 +135,7 @@ def _img2occ_section(out: Path) -> list[tuple[str, str]]:
 
 
 def _world_model_section(out: Path) -> list[tuple[str, str]]:
-    from renderworld.training.stages.world_model_report import REPORT_BASENAME
+    from renderworld.training.stages.world_model.report import REPORT_BASENAME
 
     table = out / "world_model_eval" / f"{REPORT_BASENAME}.md"
     if not table.is_file():
@@ -144,7 +144,7 @@ def _world_model_section(out: Path) -> list[tuple[str, str]]:
 
 
 def _interaction_section(out: Path) -> list[tuple[str, str]]:
-    from renderworld.training.stages.world_model_report import REPORT_BASENAME
+    from renderworld.training.stages.world_model.report import REPORT_BASENAME
 
     table = out / "world_model_interactions" / f"{REPORT_BASENAME}.md"
     if not table.is_file():
@@ -216,7 +216,7 @@ _CURVES = {
 def _pictures(cfg: Any, out: Path) -> list[str]:
     """Markdown image lines: training curves, Img2Occ views, BEV and forecast pictures."""
     # Imported here: the main job's own process stays light until it writes the report.
-    from renderworld.training.stages.world_model_pictures import BEV_PNG, TRAJ_PNG
+    from renderworld.training.stages.world_model.pictures import BEV_PNG, TRAJ_PNG
 
     figures = []
     for run, val_key in _CURVES.items():

@@ -287,7 +287,7 @@ def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step
             p.out / "planner",
             depends_on=("tokenizer", "world_model"),
             inputs=(*p.code("planning"), p.repo / "renderworld" / "training" / "stages"
-                    / "world_model_bundle.py"),
+                    / "world_model" / "bundle.py"),
         )
     )  # fmt: skip
     # One evaluation, one table: both settings, model and baselines.

@@ -25,7 +25,7 @@ class named in the file. Writes are atomic (temp file in the same folder, fsync,
 loads are strict (unknown/missing keys and wrong schema raise).
 
 Bundles of ``world_model`` runs (either forecaster):
-:func:`renderworld.training.stages.world_model_bundle.export_planner_bundle`
+:func:`renderworld.training.stages.world_model.bundle.export_planner_bundle`
 (``tools/export_planner.py``; the main job writes ``<out>/planner/planner.pt``).
 """
 

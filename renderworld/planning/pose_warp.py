@@ -2,7 +2,7 @@
 
 :class:`renderworld.world.pose.PoseWarpWorldModel` plans with the same steps as the
 ``world_model`` stage's evaluation
-(:func:`renderworld.training.stages.world_model_pose.pose_forecast`), without Hydra or the
+(:func:`renderworld.training.stages.world_model.pose_warp.pose_forecast`), without Hydra or the
 stage: the planner *is* the model the stage scores.
 
 1. History poses ``(x, y, yaw)`` [B, H, 3] in the current ego frame: positions from the request's

@@ -78,7 +78,9 @@ def load_viewer_models(
     bundle = _given(planner_bundle, "planner_bundle", "forecast", why)
     if bundle is not None:
         from renderworld.planning import load_planner
-        from renderworld.training.stages import world_model_bundle  # noqa: F401 (registers)
+
+        # (registers the scene tokenizer with the planner bundles)
+        from renderworld.training.stages.world_model import bundle as _registers  # noqa: F401
 
         models["planner"] = load_planner(bundle, device)
         return models
@@ -98,7 +100,7 @@ def _planner(world_model_ckpt: Path, tokenizer, tokenizer_ckpt: Path, device: st
     from renderworld.planning import Planner
     from renderworld.training.checkpoint import check_state_dict_keys, load_checkpoint
     from renderworld.training.stages.common import grid_of
-    from renderworld.training.stages.world_model_settings import (
+    from renderworld.training.stages.world_model.settings import (
         build_world_model,
         check_same_tokenizer,
         forecaster_of,

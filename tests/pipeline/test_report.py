@@ -13,7 +13,7 @@ from renderworld.pipeline.job_report import main_job_report as _report
 from renderworld.pipeline.runner import StepResult
 from renderworld.training.figures import bev_forecast_figure
 from renderworld.training.schedule import write_schedule
-from renderworld.training.stages.world_model_report import write_report
+from renderworld.training.stages.world_model.report import write_report
 
 
 def _outputs(out):

@@ -8,7 +8,7 @@ from PIL import Image
 
 from renderworld.constants import FREE_ID, GRIDS, GridSpec
 from renderworld.training.figures import bev_forecast_figure, trajectory_figure
-from renderworld.training.stages.world_model_pictures import picture_windows
+from renderworld.training.stages.world_model.pictures import picture_windows
 
 GRID = GridSpec("toy", (-8.0, -8.0, -1.0), (8.0, 8.0, 3.0), (8, 8, 2))
 

@@ -8,7 +8,7 @@ import pytest
 from renderworld.training.config import TrainerConfig, validate_group
 from renderworld.training.stages.img2occ import img2occ_config
 from renderworld.training.stages.tokenizer import tokenizer_config
-from renderworld.training.stages.world_model_settings import world_model_config
+from renderworld.training.stages.world_model.settings import world_model_config
 
 from .conftest import compose_cfg
 

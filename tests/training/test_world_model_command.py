@@ -13,7 +13,7 @@ from torch.utils.data import DataLoader
 
 from renderworld.constants import COMMANDS
 from renderworld.training.stages.world_model import WorldModelStage
-from renderworld.training.stages.world_model_report import HISTORY_COMMAND, report_tables
+from renderworld.training.stages.world_model.report import HISTORY_COMMAND, report_tables
 from renderworld.world import command_indices, constant_turn_rate_poses
 
 from . import test_world_model_stage as base

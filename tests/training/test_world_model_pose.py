@@ -211,7 +211,7 @@ def test_extra_train_roots_add_their_train_windows(wm_overrides, converted, tmp_
 
 
 def test_pose_step_weighting_names():
-    from renderworld.training.stages.world_model_pose import pose_step_weights
+    from renderworld.training.stages.world_model.pose_warp import pose_step_weights
 
     assert pose_step_weights("uniform", 6) is None
     w = pose_step_weights("inverse", 3)
@@ -266,7 +266,7 @@ def test_a_later_validation_reuses_the_model_free_rows_and_scores_alike(wm_overr
     """The baselines and references are scored once per validation set: a second validation
     of the same model gives every figure of the first, and a changed model changes its rows
     only."""
-    from renderworld.training.stages.world_model_eval import MODEL_FREE_METHODS
+    from renderworld.training.stages.world_model.evaluation import MODEL_FREE_METHODS
 
     stage, model, val_set = _stage(wm_overrides, tmp_path)
     loader = DataLoader(val_set, batch_size=2)

@@ -8,8 +8,8 @@ import io
 import pytest
 from omegaconf import OmegaConf
 
-from renderworld.training.stages.world_model_report import NOT_APPLICABLE, report_tables
-from renderworld.training.stages.world_model_settings import eval_settings, setting_header
+from renderworld.training.stages.world_model.report import NOT_APPLICABLE, report_tables
+from renderworld.training.stages.world_model.settings import eval_settings, setting_header
 
 HS = (1.0, 2.0)
 
@@ -185,7 +185,7 @@ def test_the_forecast_picture_shows_a_turning_window():
 
     import torch
 
-    from renderworld.training.stages.world_model_pictures import turning_window
+    from renderworld.training.stages.world_model.pictures import turning_window
 
     def item(yaw_deg: float) -> dict:
         poses = torch.zeros(6, 3)
@@ -198,7 +198,7 @@ def test_the_forecast_picture_shows_a_turning_window():
 
 
 def test_collision_counts_table_and_csv_hold_the_counts_behind_the_rates(tmp_path):
-    from renderworld.training.stages.world_model_report import (
+    from renderworld.training.stages.world_model.report import (
         collision_counts_table,
         write_report,
     )

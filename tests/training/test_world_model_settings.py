@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from renderworld.training.stages.world_model import WorldModelStage
-from renderworld.training.stages.world_model_settings import (
+from renderworld.training.stages.world_model.settings import (
     FORECASTER_KINDS,
     POSE_STEP_WEIGHTINGS,
     build_world_model,

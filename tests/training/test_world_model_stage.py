@@ -390,7 +390,7 @@ def test_mini_experiment_builds_the_model_it_names(converted, tokenizer_ckpt, tm
 def test_camera_setting_scores_pseudo_label_inputs_against_gt(converted, tmp_path):
     from renderworld.constants import FREE_ID
     from renderworld.data import load_occ3d_labels, save_occ3d_labels
-    from renderworld.training.stages.world_model_eval import WorldModelWindows
+    from renderworld.training.stages.world_model.windows import WorldModelWindows
 
     root, infos_dir = converted
     infos = load_infos(infos_dir, "val")

@@ -156,7 +156,7 @@ def setting_header(settings: list[EvalSetting], ckpt: Any, tokenizer_ckpt: Any) 
 
 #: ``stage.forecaster`` values: the token model and the pose-warp model.
 FORECASTER_KINDS = ("tokens", "pose_warp")
-#: ``stage.pose_step_weighting`` values (see ``world_model_pose.pose_step_weights``).
+#: ``stage.pose_step_weighting`` values (see ``pose_warp.pose_step_weights``).
 POSE_STEP_WEIGHTINGS = ("uniform", "inverse")
 
 

@@ -58,7 +58,7 @@ METHODS: tuple[tuple[str, str, bool, bool], ...] = (
 )
 #: Methods that read the future (reported as references, never as competitors).
 REFERENCES = ("warp_gt_pose", "warp_gt_movers")
-#: Window subsets of the CSV's split columns (see ``world_model_eval.TURN_THRESHOLD_DEG``).
+#: Window subsets of the CSV's split columns (see ``splits.TURN_THRESHOLD_DEG``).
 SPLITS = ("straight", "turning")
 REPORT_BASENAME = "world_model_eval"
 #: Table label of each setting.

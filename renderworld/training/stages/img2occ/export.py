@@ -20,7 +20,7 @@ import torch
 from omegaconf import OmegaConf
 
 from renderworld.constants import FREE_ID, OCC3D_CLASSES
-from renderworld.training.stages.img2occ_builders import load_img2occ
+from renderworld.training.stages.img2occ.builders import load_img2occ
 
 __all__ = ["ExportSummary", "export_pseudo_labels", "default_export_dir"]
 

@@ -12,7 +12,7 @@ from renderworld.tokenizer import SceneTokenizer, build_tokenizer
 from renderworld.training.checkpoint import load_checkpoint
 from renderworld.training.stages.common import grid_of
 from renderworld.training.stages.tokenizer import load_tokenizer
-from renderworld.training.stages.world_model_settings import (
+from renderworld.training.stages.world_model.settings import (
     build_world_model,
     check_same_tokenizer,
     forecaster_of,

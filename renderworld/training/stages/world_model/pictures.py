@@ -45,9 +45,9 @@ def turning_window(val_set) -> int:
     """Index of the turning window nearest the middle of the split (the middle when none turns).
 
     Turning: the ground-truth heading changes by more than ``TURN_THRESHOLD_DEG`` within the
-    window's future (see :func:`world_model_eval.turning_windows`).
+    window's future (see :func:`~renderworld.training.stages.world_model.splits.turning_windows`).
     """
-    from renderworld.training.stages.world_model_eval import turning_windows
+    from renderworld.training.stages.world_model.splits import turning_windows
 
     n = len(val_set)
     for i in sorted(range(n), key=lambda j: abs(j - n // 2)):

@@ -27,7 +27,7 @@ from renderworld.img2occ.calibration import DEFAULT_OFFSETS
 from renderworld.img2occ.readout import DEFAULT_THRESHOLDS
 from renderworld.precision import autocast_off, exact_float32
 from renderworld.training.checkpoint import load_checkpoint, save_checkpoint
-from renderworld.training.stages.img2occ_builders import img2occ_datasets
+from renderworld.training.stages.img2occ.builders import img2occ_datasets
 
 __all__ = ["ThresholdMixin"]
 

@@ -9,7 +9,7 @@ module: checkpoints hold the world model only.
 
 Forecaster (``stage.forecaster``): ``tokens`` (below: the autoregressive token model) or
 ``pose_warp`` (predicted future poses carry the current frame, tokens fill newly revealed space;
-:mod:`renderworld.training.stages.world_model_pose`, docs/world_model.md). Evaluating a
+:mod:`renderworld.training.stages.world_model.pose_warp`, docs/world_model.md). Evaluating a
 checkpoint uses its own forecaster.
 
 Loss (paper Eq. 6.20, ``tokens``): token cross-entropy + ``lambda_l2`` x L2 of the trajectory
@@ -22,12 +22,12 @@ decode the forecast; forecast mIoU/IoU
 per step (full volume, OccWorld protocol; and inside the camera mask, ``cam/``), planning L2
 (both conventions) and collision rates vs GT boxes and GT object occupancy, and the same for the
 baselines Copy&Paste, constant-velocity warp and constant-velocity trajectory (see
-:mod:`renderworld.training.stages.world_model_eval`). ``val/loss`` is the teacher-forced loss.
+:mod:`renderworld.training.stages.world_model.evaluation`). ``val/loss`` is the teacher-forced loss.
 Training validates the run's own setting; ``tools/eval.py ... pseudo_labels=DIR
 [camera_ckpt=PATH] [camera_tokenizer_ckpt=PATH]`` scores the 3D-Occ and the Camera setting in
 one pass and one table (see
-:mod:`renderworld.training.stages.world_model_settings`); ``on_eval_end`` draws the pictures
-(:mod:`renderworld.training.stages.world_model_pictures`).
+:mod:`renderworld.training.stages.world_model.settings`); ``on_eval_end`` draws the pictures
+(:mod:`renderworld.training.stages.world_model.pictures`).
 """
 
 from __future__ import annotations
@@ -44,14 +44,14 @@ from renderworld.metrics import PlanningMetric
 from renderworld.precision import autocast_off
 from renderworld.tokenizer import SceneTokenizer, Tokens
 from renderworld.training.registry import Stage, register_stage, sum_count
-from renderworld.training.stages import world_model_eval as wme
-from renderworld.training.stages import world_model_heading as wmh
-from renderworld.training.stages import world_model_pose as wmp
 from renderworld.training.stages.common import grid_of, infos_dir
-from renderworld.training.stages.world_model_bundle import TOKENIZER_KIND, export_planner_bundle
-from renderworld.training.stages.world_model_models import CheckpointModels
-from renderworld.training.stages.world_model_report import HISTORY_COMMAND
-from renderworld.training.stages.world_model_settings import (
+from renderworld.training.stages.world_model import evaluation as wme
+from renderworld.training.stages.world_model import heading as wmh
+from renderworld.training.stages.world_model import pose_warp as wmp
+from renderworld.training.stages.world_model.checkpoints import CheckpointModels
+from renderworld.training.stages.world_model.frozen_tokenizers import FrozenTokenizers
+from renderworld.training.stages.world_model.report import HISTORY_COMMAND
+from renderworld.training.stages.world_model.settings import (
     EvalSetting,
     eval_settings,
     extra_train_roots,
@@ -59,9 +59,8 @@ from renderworld.training.stages.world_model_settings import (
     frame_cache_dir,
     setting_header,
     stage_settings,
-    world_model_config,
 )
-from renderworld.training.stages.world_model_tokens import FrozenTokenizers
+from renderworld.training.stages.world_model.windows import WorldModelWindows
 from renderworld.world import (
     command_indices,
     constant_turn_rate_poses,
@@ -75,12 +74,7 @@ from renderworld.world import (
     world_model_loss,
 )
 
-__all__ = [
-    "WorldModelStage",
-    "world_model_config",
-    "export_planner_bundle",
-    "TOKENIZER_KIND",
-]
+__all__ = ["WorldModelStage"]
 
 
 @register_stage("world_model")
@@ -113,9 +107,9 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         return tuple(m for m in wme.FORECASTERS if m not in wmp.POSE_METHODS or m in extra)
 
     # ------------------------------------------------------------------ Stage API
-    def _windows(self, cfg: Any, split: str, occ_root, gt_targets: bool) -> wme.WorldModelWindows:
+    def _windows(self, cfg: Any, split: str, occ_root, gt_targets: bool) -> WorldModelWindows:
         st = self.settings
-        return wme.WorldModelWindows(
+        return WorldModelWindows(
             load_infos(infos_dir(cfg), split), str(cfg.dataset.data_root), self.grid, st.history,
             st.future, occ_root, gt_targets, frame_cache_dir(cfg),
         )  # fmt: skip
@@ -130,14 +124,14 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         _ = self.tokenizer  # a wrong stage.tokenizer_ckpt fails before any data is read
         st, cache = self.settings, frame_cache_dir(cfg)
 
-        def windows(split: str, occ_root, gt_targets: bool) -> wme.WorldModelWindows:
+        def windows(split: str, occ_root, gt_targets: bool) -> WorldModelWindows:
             return self._windows(cfg, split, occ_root, gt_targets)
 
         # Camera setting: train on pseudo labels; validate pseudo-label inputs against GT (with
         # pseudo_labels=DIR at eval, the same windows give both settings' inputs).
         train = windows(cfg.dataset.train_split, cfg.stage.get("occ_root"), False)
         extra = [
-            wme.WorldModelWindows(load_infos(infos, cfg.dataset.train_split), extra_root,
+            WorldModelWindows(load_infos(infos, cfg.dataset.train_split), extra_root,
                                   self.grid, st.history, st.future, None, False, cache)
             for extra_root, infos in extra_train_roots(cfg)
         ]  # fmt: skip
@@ -193,7 +187,7 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
 
         Returns:
             (``{method: [B, S, X, Y, Z] uint8}`` forecasts, ``{method: [B, S, 2]}`` trajectories
-            in metres, current ego frame), methods as in :data:`world_model_eval.METHODS`.
+            in metres, current ego frame), methods as in ``report.METHODS``.
         """
         st = self.settings
         h, f = st.history, st.future
@@ -364,40 +358,8 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
             for k in ("loss", "token_ce", "l2")
         }
         out["num_windows"] = float(stats["loss/count"])
-        hs = self.horizons
         for s in self.eval_settings:
-            for m, _, has_occ, has_traj in wme.METHODS:
-                p = f"{s.prefix}{m}"
-                if has_occ and f"{p}/full/confusion" not in stats:
-                    continue  # a variant of another forecaster
-                if has_occ:
-                    full = wme.forecast_from_stats(stats, f"{p}/full", hs)
-                    cam = wme.forecast_from_stats(stats, f"{p}/cam", hs, "camera")
-                    out.update({f"{p}/{k}": v for k, v in full.items()})
-                    out.update(
-                        {
-                            f"{p}/cam/{k}": v
-                            for k, v in cam.items()
-                            if "step" not in k and "class" not in k
-                        }
-                    )
-                for split in wme.SPLITS:
-                    if has_occ:
-                        res = wme.forecast_from_stats(stats, f"{p}/{split}", hs)
-                        out.update({f"{p}/{split}/{k}": v for k, v in res.items()
-                                    if "step" not in k and "class_iou" not in k})  # fmt: skip
-                    if has_traj:
-                        res = wme.split_l2_from_stats(stats, f"{p}/{split}", hs)
-                        out.update({f"{p}/{split}/{k}": v for k, v in res.items()})
-                    elif has_occ:
-                        n = wme.split_l2_from_stats(stats, f"{s.prefix}model/{split}", hs)
-                        out[f"{p}/{split}/num_windows"] = n["num_windows"]
-                if has_traj:
-                    res = wme.planning_from_stats(stats, f"{p}/plan", hs, self.grid)
-                    out.update({f"{p}/{k}": v for k, v in res.items()})
-                if f"{p}/heading/count" in stats:
-                    res = wmh.heading_from_stats(stats, p, hs)
-                    out.update({f"{p}/{k}": v for k, v in res.items()})
+            out.update(wme.setting_metrics(stats, s.prefix, self.horizons, self.grid))
         return out
 
     def write_report(self, metrics: dict[str, float], run_dir: str) -> str | None:
@@ -423,6 +385,6 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         """Pictures of the evaluation into ``run_dir``: BEV forecasts and planned trajectories."""
         if self._val_set is None or len(self._val_set) == 0:
             return
-        from renderworld.training.stages.world_model_pictures import write_pictures
+        from renderworld.training.stages.world_model.pictures import write_pictures
 
         write_pictures(self, model, self._val_set, Path(run_dir))

@@ -14,7 +14,7 @@ import torch
 
 from renderworld.metrics.forecast import horizon_steps
 from renderworld.metrics.heading import HEADING_BINS, heading_counts, heading_from_counts
-from renderworld.training.stages.world_model_splits import horizon_name
+from renderworld.training.stages.world_model.splits import horizon_name
 
 __all__ = ["add_heading_stats", "empty_heading_stats", "heading_from_stats"]
 

@@ -1,7 +1,7 @@
 """Builders of the ``img2occ`` stage: its model config, datasets and trained model from a run.
 
-Shared by the stage (``img2occ``), its end-of-training readout selection (``img2occ_threshold``)
-and the pseudo-label export (``img2occ_export``).
+Shared by the stage (``stage``), its end-of-training readout selection (``threshold``)
+and the pseudo-label export (``export``).
 """
 
 from __future__ import annotations

@@ -42,26 +42,18 @@ from renderworld.training.stages.common import (
     confusion_stats,
     occupancy_metrics,
 )
-from renderworld.training.stages.img2occ_builders import (
+from renderworld.training.stages.img2occ.builders import (
     _adjacent,
     img2occ_config,
     img2occ_datasets,
-    load_img2occ,
 )
-from renderworld.training.stages.img2occ_threshold import (
+from renderworld.training.stages.img2occ.threshold import (
     ThresholdMixin,
     _offset_options,
     _threshold_options,
 )
 
-__all__ = [
-    "Img2OccStage",
-    "img2occ_config",
-    "img2occ_datasets",
-    "load_img2occ",
-    "occ3d_report_markdown",
-    "MASKS",
-]
+__all__ = ["Img2OccStage", "occ3d_report_markdown", "MASKS"]
 
 log = logging.getLogger("renderworld.training")
 

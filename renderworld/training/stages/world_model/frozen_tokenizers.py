@@ -12,8 +12,8 @@ import torch
 from renderworld.precision import autocast_off
 from renderworld.tokenizer import SceneTokenizer
 from renderworld.training.checkpoint import CheckpointError
-from renderworld.training.stages import world_model_eval as wme
 from renderworld.training.stages.tokenizer import load_tokenizer
+from renderworld.training.stages.world_model.windows import frame_keys
 
 __all__ = ["FrozenTokenizers"]
 
@@ -85,7 +85,7 @@ class FrozenTokenizers:
         tok_key = self.settings.tokenizer_ckpt if tokenizer is None else str(tokenizer)
         keys = [
             [(tok_key, source, k) for k in row[:frames]]
-            for row in wme.frame_keys(batch, b, occ.shape[1])
+            for row in frame_keys(batch, b, occ.shape[1])
         ]
         tok = self._tokenizer_on(device, tokenizer)
         cache = self._codes if self.settings.cache_tokens else {}

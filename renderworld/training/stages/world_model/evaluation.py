@@ -1,7 +1,4 @@
-"""Evaluation data, statistics and report of the ``world_model`` stage.
-
-:class:`WorldModelWindows` adds each future frame's pose to the sequence windows (for the
-collision-vs-occupancy metric).
+"""Evaluation statistics and report of the ``world_model`` stage.
 
 The metrics are exactly :mod:`renderworld.metrics`': a rank accumulates counts over its shard
 (per-step forecast confusions counted on the device by
@@ -30,35 +27,31 @@ windows (:func:`turning_windows`) and per class (CSV).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
 
 from renderworld.constants import FREE_ID, KEYFRAME_DT, NUM_OCC3D_CLASSES, OCC3D_CLASSES, GridSpec
-from renderworld.data import OccSequenceDataset
 from renderworld.metrics import FORECAST_HORIZONS_S, ForecastMetric, PlanningMetric
 from renderworld.metrics.occupancy import iou_per_class
 from renderworld.training.stages.common import confusion_stats
-from renderworld.training.stages.world_model_report import (
+from renderworld.training.stages.world_model.heading import heading_from_stats
+from renderworld.training.stages.world_model.report import (
     METHODS,
     REPORT_BASENAME,
     SPLITS,
     report_tables,
     write_report,
 )
-from renderworld.training.stages.world_model_splits import (
+from renderworld.training.stages.world_model.splits import (
     TURN_THRESHOLD_DEG,
     add_split_l2,
     split_l2_from_stats,
     turning_windows,
 )
-from renderworld.training.stages.world_model_splits import horizon_name as _hname
+from renderworld.training.stages.world_model.splits import horizon_name as _hname
 
 __all__ = [
-    "WorldModelWindows",
-    "frame_keys",
     "METHODS",
     "FORECASTERS",
     "PLANNERS",
@@ -67,6 +60,7 @@ __all__ = [
     "update_planning",
     "REPORT_BASENAME",
     "horizons_for",
+    "setting_metrics",
     "forecast_to_stats",
     "forecast_from_stats",
     "planning_to_stats",
@@ -88,65 +82,6 @@ MODEL_FREE_METHODS = (
     "warp_gt_pose", "warp_gt_movers",
 )  # fmt: skip
 _COLL_KEYS = ("hit", "evaluated", "gt_skipped", "outside")
-
-
-class WorldModelWindows(Dataset):
-    """``OccSequenceDataset`` windows (with GT targets in the Camera setting).
-
-    ``frame_cache``: folder of the on-disk frame cache (see ``OccSequenceDataset``) or None.
-
-    With ``occ_root`` (pseudo labels) and ``gt_targets``, items also carry the dataset's GT
-    ``occ_target`` uint8 [T,X,Y,Z] and ``mask_camera_target`` bool [T,X,Y,Z] of the same window,
-    which evaluation scores against (the "Camera" setting).
-
-    The items' ``future_poses[k]`` (from ``OccSequenceDataset``) = (x, y, yaw) of future frame
-    k's ego frame in the current (last history) ego frame, metres / radians: where each future
-    GT occupancy frame lies, for the collision-vs-occupancy metric.
-    """
-
-    def __init__(
-        self,
-        infos,
-        data_root,
-        grid,
-        history,
-        future,
-        occ_root=None,
-        gt_targets=False,
-        frame_cache=None,
-    ):
-        self.seq = OccSequenceDataset(
-            infos, data_root, history=history, future=future, grid=grid, occ_root=occ_root,
-            frame_cache=frame_cache,
-        )  # fmt: skip
-        # Camera setting: inputs are pseudo labels (occ_root) but forecasts are scored against
-        # the dataset's GT; the GT windows are the same windows (same infos, history, future).
-        self.gt = None
-        if occ_root is not None and gt_targets:
-            self.gt = OccSequenceDataset(
-                infos, data_root, history=history, future=future, grid=grid, occ_root=None,
-                frame_cache=frame_cache,
-            )  # fmt: skip
-
-    def __len__(self) -> int:
-        return len(self.seq)
-
-    def __getitem__(self, i: int) -> dict[str, Any]:
-        item = self.seq[i]
-        if self.gt is not None:
-            gt = self.gt[i]
-            item["occ_target"], item["mask_camera_target"] = gt["occ"], gt["mask_camera"]
-        return item
-
-
-def frame_keys(batch: dict, b: int, t: int) -> list[list[str]]:
-    """Sample tokens [B][T] of a collated batch (``meta.sample_tokens`` is T lists of B)."""
-    toks = batch["meta"]["sample_tokens"]
-    if len(toks) != t or any(len(col) != b for col in toks):
-        raise ValueError(
-            f"batch: expected meta.sample_tokens as {t} lists of {b} tokens (default collate)"
-        )
-    return [[str(toks[j][i]) for j in range(t)] for i in range(b)]
 
 
 def horizons_for(future: int) -> tuple[float, ...]:
@@ -357,4 +292,52 @@ def planning_from_stats(
     for name, value in res.items():
         if isinstance(value, (int, float)) and name not in ("num_samples", "masked_steps"):
             out[name.replace("@", "_")] = float(value)
+    return out
+
+
+def setting_metrics(
+    stats: Mapping[str, torch.Tensor], prefix: str, horizons: tuple[float, ...], grid: GridSpec
+) -> dict[str, float]:
+    """Metrics of every method of one evaluated setting from the rank-summed statistics.
+
+    Args:
+        stats: the summed statistics of ``WorldModelStage.evaluate``.
+        prefix: the setting's key prefix (``""`` for the run's own setting).
+        horizons: the reported horizons (s), see :func:`horizons_for`.
+        grid: the occupancy grid (collision vs GT occupancy).
+
+    Returns:
+        ``{"<prefix><method>/<metric>": value}``: forecast metrics (full volume, camera mask,
+        straight / turning splits), planning L2 and collisions, and heading errors, for each
+        row of :data:`METHODS` the statistics hold.
+    """
+    out: dict[str, float] = {}
+    for m, _, has_occ, has_traj in METHODS:
+        p = f"{prefix}{m}"
+        if has_occ and f"{p}/full/confusion" not in stats:
+            continue  # a variant of another forecaster
+        if has_occ:
+            full = forecast_from_stats(stats, f"{p}/full", horizons)
+            cam = forecast_from_stats(stats, f"{p}/cam", horizons, "camera")
+            out.update({f"{p}/{k}": v for k, v in full.items()})
+            out.update(
+                {f"{p}/cam/{k}": v for k, v in cam.items() if "step" not in k and "class" not in k}
+            )
+        for split in SPLITS:
+            if has_occ:
+                res = forecast_from_stats(stats, f"{p}/{split}", horizons)
+                out.update({f"{p}/{split}/{k}": v for k, v in res.items()
+                            if "step" not in k and "class_iou" not in k})  # fmt: skip
+            if has_traj:
+                res = split_l2_from_stats(stats, f"{p}/{split}", horizons)
+                out.update({f"{p}/{split}/{k}": v for k, v in res.items()})
+            elif has_occ:
+                n = split_l2_from_stats(stats, f"{prefix}model/{split}", horizons)
+                out[f"{p}/{split}/num_windows"] = n["num_windows"]
+        if has_traj:
+            res = planning_from_stats(stats, f"{p}/plan", horizons, grid)
+            out.update({f"{p}/{k}": v for k, v in res.items()})
+        if f"{p}/heading/count" in stats:
+            res = heading_from_stats(stats, p, horizons)
+            out.update({f"{p}/{k}": v for k, v in res.items()})
     return out

@@ -21,7 +21,7 @@ import torch.nn.functional as F
 
 from renderworld.constants import COMMANDS
 from renderworld.tokenizer import Tokens
-from renderworld.training.stages import world_model_eval as wme
+from renderworld.training.stages.world_model.windows import frame_keys
 from renderworld.world.forecast import pose_warp_forecast, warp_current
 from renderworld.world.pose import align_history, pose_loss
 
@@ -102,7 +102,7 @@ def _history_codes(stage, batch, aligned, source, tokenizer) -> torch.Tensor:
     (``aligned`` [B, H-1, X, Y, Z]; cached by frame and current frame)."""
     h = stage.settings.history
     b = aligned.shape[0]
-    toks = wme.frame_keys(batch, b, batch["occ"].shape[1])
+    toks = frame_keys(batch, b, batch["occ"].shape[1])
     tok_key = stage.settings.tokenizer_ckpt if tokenizer is None else str(tokenizer)
     keys = [(tok_key, source, "aligned", toks[i][j], toks[i][h - 1]) for i in range(b)
             for j in range(h - 1)]  # fmt: skip
@@ -161,7 +161,7 @@ def pose_teacher_forced(
         pl = {k: 0.5 * (pl[k] + m[k]) for k in pl}
 
     b = occ.shape[0]
-    toks = wme.frame_keys(batch, b, occ.shape[1])
+    toks = frame_keys(batch, b, occ.shape[1])
     movers = getattr(model, "movers", "static")
     bases = warp_current(occ[:, :h], batch["history_poses"], fut_poses, stage.grid, movers)
     bases = bases.flatten(0, 1)

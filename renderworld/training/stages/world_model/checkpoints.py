@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 from torch import nn
 
 from renderworld.training.checkpoint import CheckpointError, load_checkpoint
-from renderworld.training.stages.world_model_settings import (
+from renderworld.training.stages.world_model.settings import (
     EvalSetting,
     build_world_model,
     check_same_tokenizer,
