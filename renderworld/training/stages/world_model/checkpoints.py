@@ -2,15 +2,17 @@
 
 When evaluating, the architecture and forecaster are the checkpoint's; a Camera-setting model
 (``camera_ckpt``) is loaded strictly and checked against its own tokenizer. Needs the stage's
-``settings``, ``forecaster``, ``eval_settings``, ``setting_models`` and ``tokenizer_of``.
+``settings``, ``forecaster``, ``eval_settings``, ``setting_models``, ``tokenizer`` and
+``tokenizer_of`` (declared on the class).
 """
 
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import fields
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from omegaconf import OmegaConf
 from torch import nn
@@ -29,6 +31,10 @@ from renderworld.world import (
 )
 from renderworld.world.forecast import check_movers
 
+if TYPE_CHECKING:
+    from renderworld.tokenizer import SceneTokenizer
+    from renderworld.training.stages.world_model.settings import StageSettings
+
 __all__ = ["CheckpointModels", "with_movers"]
 
 
@@ -44,6 +50,14 @@ def with_movers(model: nn.Module, cfg: Any) -> nn.Module:
 
 class CheckpointModels:
     """``build_model`` and the checkpoint checks of the world-model stage."""
+
+    # What the class this is mixed into provides (its ``__init__``, ``FrozenTokenizers``):
+    settings: StageSettings  # validated ``stage.*`` keys (``tokenizer_ckpt``)
+    forecaster: str  # "tokens" or "pose_warp"; ``build_model`` sets the checkpoint's own
+    eval_settings: list[EvalSetting]  # the evaluated settings (3D-Occ, Camera)
+    setting_models: dict[str, nn.Module]  # a setting's own model by key (filled here)
+    tokenizer: SceneTokenizer  # the run's frozen tokenizer (``stage.tokenizer_ckpt``)
+    tokenizer_of: Callable[[str | None], SceneTokenizer]  # frozen tokenizer of a checkpoint
 
     def build_model(self, cfg: Any) -> nn.Module:
         """The world model; when evaluating (``ckpt`` set) its architecture is the checkpoint's.

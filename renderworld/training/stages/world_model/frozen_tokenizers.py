@@ -2,10 +2,12 @@
 
 The tokenizer lives on the stage, never in the trained module; codes are cached in memory by
 (tokenizer checkpoint, source, sample token), so each keyframe is encoded once per run. Needs the
-stage's ``settings``, ``grid``, ``_tokenizers`` and ``_codes``.
+stage's ``cfg``, ``settings``, ``grid``, ``_tokenizers`` and ``_codes`` (declared on the class).
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -15,6 +17,10 @@ from renderworld.training.checkpoint import CheckpointError
 from renderworld.training.stages.tokenizer import load_tokenizer
 from renderworld.training.stages.world_model.windows import frame_keys
 
+if TYPE_CHECKING:
+    from renderworld.constants import GridSpec
+    from renderworld.training.stages.world_model.settings import StageSettings
+
 __all__ = ["FrozenTokenizers"]
 
 _ENCODE_CHUNK = 16  # frames per tokenizer call (bounds memory on the Occ3D grid)
@@ -22,6 +28,13 @@ _ENCODE_CHUNK = 16  # frames per tokenizer call (bounds memory on the Occ3D grid
 
 class FrozenTokenizers:
     """``tokenizer`` / ``tokenizer_of`` / ``window_tokens`` of the world-model stage."""
+
+    # What the class this is mixed into provides (set in its ``__init__``):
+    cfg: Any  # the run config; ``stage.occ_root`` names the default token source
+    settings: StageSettings  # validated ``stage.*`` keys: ``tokenizer_ckpt``, ``cache_tokens``
+    grid: GridSpec  # the run's grid; every tokenizer must have been trained on it
+    _tokenizers: dict[str, SceneTokenizer]  # frozen tokenizers by checkpoint path (filled here)
+    _codes: dict[tuple[str, ...], torch.Tensor]  # cached codes by (tokenizer, source, ...) key
 
     @property
     def tokenizer(self) -> SceneTokenizer:

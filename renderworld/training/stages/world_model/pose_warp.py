@@ -10,11 +10,13 @@ Forecast (test time, leak-free): poses from the pose head (history poses, curren
 current frame), then :func:`renderworld.world.forecast.pose_warp_forecast` - the one
 forecaster the planner calls too - with this stage's tokenizer and token cache. Only
 ``history_poses``, the history occupancy and ``command`` of a batch are read.
+
+The functions take the stage itself; :class:`PoseWarpStage` names what they read of it.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
 import torch.nn.functional as F
@@ -25,7 +27,13 @@ from renderworld.training.stages.world_model.windows import frame_keys
 from renderworld.world.forecast import pose_warp_forecast, warp_current
 from renderworld.world.pose import align_history, pose_loss
 
+if TYPE_CHECKING:
+    from renderworld.constants import GridSpec
+    from renderworld.tokenizer import SceneTokenizer
+    from renderworld.training.stages.world_model.settings import EvalSetting, StageSettings
+
 __all__ = [
+    "PoseWarpStage",
     "POSE_METHODS",
     "encode_frames",
     "mirror_command",
@@ -39,9 +47,38 @@ POSE_METHODS = ("model_warp", "model_net")
 _CHUNK = 16
 
 
+class PoseWarpStage(Protocol):
+    """What the functions of this module read of the stage (a ``WorldModelStage``)."""
+
+    cfg: Any  # the run config; ``stage.occ_root`` names the default token source
+    settings: StageSettings  # history, tokenizer_ckpt, cache_tokens and the pose_* options
+    grid: GridSpec  # the run's occupancy grid (warps, history alignment)
+    _codes: dict[tuple[str, ...], torch.Tensor]  # the stage's token cache (filled here)
+
+    def tokenizer_of(self, path: str | None) -> SceneTokenizer:
+        """The frozen tokenizer of checkpoint ``path`` (None: ``stage.tokenizer_ckpt``)."""
+        ...
+
+    def _tokenizer_on(self, device: torch.device, path: str | None = None) -> SceneTokenizer:
+        """The same tokenizer, moved to ``device``."""
+        ...
+
+    def window_tokens(
+        self,
+        batch: dict,
+        frames: int,
+        device: torch.device,
+        inputs: str = "occ",
+        source: str | None = None,
+        tokenizer: str | None = None,
+    ) -> torch.Tensor:
+        """Codes [B, frames, G, h, w] of a batch's first ``frames`` frames (token cache)."""
+        ...
+
+
 @torch.no_grad()
 def encode_frames(
-    stage: Any,
+    stage: PoseWarpStage,
     frames: torch.Tensor,
     keys: list[tuple] | None,
     device: torch.device,
@@ -97,7 +134,13 @@ def mirror_command(command: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def _history_codes(stage, batch, aligned, source, tokenizer) -> torch.Tensor:
+def _history_codes(
+    stage: PoseWarpStage,
+    batch: dict,
+    aligned: torch.Tensor,
+    source: str,
+    tokenizer: str | None,
+) -> torch.Tensor:
     """Codes [B, H-1, G, h, w] of history frames t-H+1..t-1 already in the current ego frame
     (``aligned`` [B, H-1, X, Y, Z]; cached by frame and current frame)."""
     h = stage.settings.history
@@ -112,7 +155,14 @@ def _history_codes(stage, batch, aligned, source, tokenizer) -> torch.Tensor:
     )
 
 
-def _aligned_history_codes(stage, batch, occ_key, source, tokenizer, device) -> torch.Tensor:
+def _aligned_history_codes(
+    stage: PoseWarpStage,
+    batch: dict,
+    occ_key: str,
+    source: str,
+    tokenizer: str | None,
+    device: torch.device,
+) -> torch.Tensor:
     """Codes [B, H-1, G, h, w] of history frames t-H+1..t-1 in the current ego frame."""
     h = stage.settings.history
     occ, poses = batch[occ_key][:, : h - 1], batch["history_poses"][:, : h - 1]
@@ -120,13 +170,13 @@ def _aligned_history_codes(stage, batch, occ_key, source, tokenizer, device) -> 
     return _history_codes(stage, batch, aligned, source, tokenizer).to(device)
 
 
-def _code_shape(stage, tokenizer) -> tuple[int, int, int]:
+def _code_shape(stage: PoseWarpStage, tokenizer: str | None) -> tuple[int, int, int]:
     cfg = stage.tokenizer_of(tokenizer).cfg
     return (len(cfg.codebook_sizes), *cfg.latent_shape)
 
 
 def pose_teacher_forced(
-    stage: Any,
+    stage: PoseWarpStage,
     model: Any,
     batch: dict,
     inputs: str = "occ",
@@ -194,7 +244,9 @@ class _StageCodec:
     """The stage's :class:`~renderworld.world.forecast.FrameCodec`: its frozen tokenizer, the
     aligned history's codes cached by frame (ground truth only), warped frames never cached."""
 
-    def __init__(self, stage: Any, batch: dict, setting: Any, device: torch.device):
+    def __init__(
+        self, stage: PoseWarpStage, batch: dict, setting: EvalSetting, device: torch.device
+    ):
         self.stage, self.batch, self.setting, self.device = stage, batch, setting, device
 
     def encode(self, aligned: torch.Tensor, warped: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -215,7 +267,7 @@ class _StageCodec:
 
 @torch.no_grad()
 def pose_forecast(
-    stage: Any, model: Any, batch: dict, setting: Any
+    stage: PoseWarpStage, model: Any, batch: dict, setting: EvalSetting
 ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
     """Forecasts ``model`` / ``model_warp`` / ``model_net`` [B, S, X, Y, Z] and the planned
     poses [B, S, 3] (x, y, yaw; metres, radians, current ego frame) of one setting's inputs

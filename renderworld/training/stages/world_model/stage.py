@@ -91,8 +91,8 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         self.horizons = wme.horizons_for(self.settings.future)
         #: Frozen tokenizers by checkpoint path (``stage.tokenizer_ckpt``, and a setting's own).
         self._tokenizers: dict[str, SceneTokenizer] = {}
-        #: Codes by (tokenizer checkpoint, source, sample token).
-        self._codes: dict[tuple[str, str, str], torch.Tensor] = {}
+        #: Codes by (tokenizer checkpoint, source, sample token); pose_warp keys add fields.
+        self._codes: dict[tuple[str, ...], torch.Tensor] = {}
         self.eval_settings, self._val_occ_root = eval_settings(cfg)
         #: Models of settings evaluated with their own checkpoint (``camera_ckpt``), by key.
         self.setting_models: dict[str, nn.Module] = {}
