@@ -216,7 +216,7 @@ _CURVES = {
 def _pictures(cfg: Any, out: Path) -> list[str]:
     """Markdown image lines: training curves, Img2Occ views, BEV and forecast pictures."""
     # Imported here: the main job's own process stays light until it writes the report.
-    from renderworld.training.stages.world_model.pictures import BEV_PNG, TRAJ_PNG
+    from renderworld.training.stages.world_model.pictures import BEV_PNG, MOVERS_PNG, TRAJ_PNG
 
     figures = []
     for run, val_key in _CURVES.items():
@@ -232,6 +232,8 @@ def _pictures(cfg: Any, out: Path) -> list[str]:
         ("bev", "BEV GT vs reconstruction"),
         (out / "world_model_eval" / BEV_PNG,
          "BEV occupancy: GT vs Img2Occ pseudo label vs forecasts at +1/2/3 s"),
+        (out / "world_model_eval" / MOVERS_PNG,
+         "A window where a car moves: model, object-CV warp, GT-pose warp, GT"),
         (out / "world_model_eval" / TRAJ_PNG,
          "Planned vs GT trajectories over the BEV (3D-Occ model, CV baseline)"),
     ]  # fmt: skip

@@ -97,6 +97,7 @@ def bev_forecast_figure(
     grid: GridSpec,
     out_png: str | Path,
     title: str | None = None,
+    marks: Sequence[tuple[float, float]] = (),
 ) -> Path:
     """A grid of bird's-eye views: one row per source, one column per time.
 
@@ -106,13 +107,16 @@ def bev_forecast_figure(
         grid: the voxel grid of every frame (gives the axes in metres).
         out_png: file to write (folders are created).
         title: optional figure title.
+        marks: (x, y) points, metres in the ego frame of the first column's frames, circled
+            in that column of every row (e.g. an object the figure is about).
 
     Returns:
         ``out_png`` as a Path.
 
     Raises:
         ValueError: no rows or columns, a row whose frame count differs from ``col_titles``,
-            or a frame of the wrong shape, dtype or class range.
+            a frame of the wrong shape, dtype or class range, or a mark that is not a finite
+            (x, y) pair.
     """
     rows, col_titles = list(rows), list(col_titles)
     if not rows or not col_titles:
@@ -129,6 +133,11 @@ def bev_forecast_figure(
                 f"got {len(row)}"
             )
         frames.append([_check_frame(f, grid, f"rows[{r}][{c}]") for c, f in enumerate(row)])
+    marks = np.asarray(list(marks), dtype=np.float64) if len(marks) else None
+    if marks is not None and (
+        marks.ndim != 2 or marks.shape[1] != 2 or not np.isfinite(marks).all()
+    ):
+        raise ValueError(f"marks: expected finite (x, y) pairs, got {marks.tolist()}")
     plt = _plt()
     nr, nc = len(rows), len(col_titles)
     fig, axes = plt.subplots(nr, nc, figsize=(1.75 * nc + 0.9, 1.75 * nr + 0.9), squeeze=False)
@@ -138,6 +147,12 @@ def bev_forecast_figure(
             ax, occ = axes[r][c], frames[r][c]
             present |= set(np.unique(occ).tolist())
             ax.imshow(bev_image(occ), extent=_extent(grid), interpolation="nearest")
+            if c == 0 and marks is not None:  # ring around each mark (plot axes: y, x)
+                lims = ax.get_xlim(), ax.get_ylim()
+                ax.scatter(marks[:, 1], marks[:, 0], s=420, facecolors="none",
+                           edgecolors="black", linewidths=0.9)  # fmt: skip
+                ax.set_xlim(lims[0])
+                ax.set_ylim(lims[1])
             ax.tick_params(labelsize=6)
             if r == 0:
                 ax.set_title(col_titles[c], fontsize=8)

@@ -36,7 +36,7 @@ def _outputs(out):
     wm = out / "world_model_eval"
     write_report(metrics, wm, (1.0,), ["one table"], (("3D-Occ", ""), ("Camera", "camera/")))
     occ = np.full(GRIDS["coarse"].shape, FREE_ID, dtype=np.uint8)
-    for name in ("bev_forecast.png", "trajectories.png"):
+    for name in ("bev_forecast.png", "bev_movers.png", "trajectories.png"):
         bev_forecast_figure([("GT", [occ])], ["t=0"], GRIDS["coarse"], wm / name)
 
 
@@ -56,8 +56,9 @@ def test_report_has_one_world_model_table_pictures_and_no_empty_cell(tmp_path):
     assert "Not in this run yet" not in text
     assert text.count("| setting | method |") == 1  # one table, both settings
     assert "| Camera | CV-trajectory |" in text and "| 3D-Occ | model |" in text
-    for name in ("bev_forecast.png", "trajectories.png"):
+    for name in ("bev_forecast.png", "bev_movers.png", "trajectories.png"):
         assert f"(figures/{name})" in text and (out / "figures" / name).is_file()
+    assert "![A window where a car moves: model, object-CV warp, GT-pose warp, GT](" in text
     assert "## Planner" not in text  # no bundle yet
     (out / "planner").mkdir()
     (out / "planner" / "planner.pt").write_bytes(b"made up")

@@ -61,6 +61,22 @@ def test_bev_forecast_figure_checks_its_layout(tmp_path, rows, cols, match):
     assert not (tmp_path / "x.png").exists()
 
 
+def test_bev_forecast_figure_circles_the_marks_in_the_first_column(tmp_path):
+    rows = [(name, [_frame(), _frame()]) for name in ("GT", "model")]
+    plain = bev_forecast_figure(rows, ["t=0", "+1 s"], GRID, tmp_path / "plain.png")
+    marked = bev_forecast_figure(rows, ["t=0", "+1 s"], GRID, tmp_path / "m.png", marks=[(2, 3)])
+    a = np.asarray(Image.open(plain).convert("RGB")).astype(int)
+    b = np.asarray(Image.open(marked).convert("RGB")).astype(int)
+    assert a.shape == b.shape
+    cols = np.nonzero(np.abs(a - b).sum(axis=(0, 2)))[0]
+    assert cols.size and cols.max() < a.shape[1] // 2  # drawn, in the left column only
+    rows_changed = np.nonzero(np.abs(a - b).sum(axis=(1, 2)))[0]
+    assert rows_changed.min() < a.shape[0] // 2 < rows_changed.max()  # in both rows
+    for bad in ([(1.0, float("nan"))], [(1.0, 2.0, 3.0)]):
+        with pytest.raises(ValueError, match="marks: expected finite"):
+            bev_forecast_figure(rows, ["t=0", "+1 s"], GRID, tmp_path / "x.png", marks=bad)
+
+
 def test_trajectory_figure_writes_a_png_of_the_layout_size(tmp_path):
     t = np.stack([np.linspace(0.5, 3.0, 6), np.zeros(6)], axis=1)
     panels = [

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 
+import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
@@ -195,6 +196,64 @@ def test_the_forecast_picture_shows_a_turning_window():
     windows = [item(30), item(0), item(0), item(2), item(0), item(-40), item(0)]
     assert turning_window(windows) == 5  # nearest the middle (3) of those turning > 5 deg
     assert turning_window([item(0)] * 4) == 2  # none turns: the middle
+
+
+def _mover_item(cars_now, cars_past, turn_deg: float = 0.0, cls: str = "car") -> dict:
+    """A window of 3 history + 6 future coarse frames; the ego drives 6.4 m/s forward (4 cells
+    per second: frame t-2 lies 4 cells behind). Cars are 2x2-cell boxes at their lowest cell
+    (ix, iy) in frame t (``cars_now``) and in frame t-2's own ego frame (``cars_past``); ``cls``
+    another movable class instead."""
+    import math
+
+    import torch
+
+    from renderworld.constants import FREE_ID, GRIDS, OCC3D_CLASSES
+
+    car = OCC3D_CLASSES.index(cls)
+    occ = np.full((9, *GRIDS["coarse"].shape), FREE_ID, dtype=np.uint8)
+    occ[..., 0] = OCC3D_CLASSES.index("driveable_surface")
+    for frame, cars in ((2, cars_now), (0, cars_past)):
+        for ix, iy in cars:
+            occ[frame, ix : ix + 2, iy : iy + 2, 1:3] = car
+    future = torch.zeros(6, 3)
+    future[:, 0] = 3.2 * torch.arange(1, 7)
+    future[:, 2] = torch.linspace(0, math.radians(turn_deg), 6)
+    return {
+        "occ": torch.from_numpy(occ),
+        "history_poses": torch.tensor([[-6.4, 0.0, 0.0], [-3.2, 0.0, 0.0], [0.0, 0.0, 0.0]]),
+        "future_poses": future,
+        "future_mask": torch.ones(6, dtype=torch.bool),
+    }
+
+
+def test_the_movers_picture_shows_the_window_of_the_fastest_car_in_view():
+    from renderworld.constants import GRIDS, OCC3D_CLASSES
+    from renderworld.training.stages.world_model.pictures import mover_window
+
+    grid = GRIDS["coarse"]  # 1.6 m cells; the ego's motion moves frame t-2 by 4 cells
+    parked = _mover_item([(30, 30)], [(34, 30)])  # the same place in the world
+    moving = _mover_item([(30, 30), (15, 20)], [(34, 30), (13, 20)])  # 6 cells/s: 9.6 m/s
+    # Faster, but clipped by the grid's edge (11.2 m/s), gone from the grid by +3 s (12.8 m/s
+    # towards the back, the ego 19.2 m forward) or a truck (11.2 m/s): none is shown.
+    edge = _mover_item([(10, 0)], [(7, 0)])
+    leaving = _mover_item([(20, 10)], [(32, 10)])
+    truck = _mover_item([(10, 20)], [(7, 20)], cls="truck")
+    pick = mover_window([parked, edge, moving, leaving, truck], grid, history=3, future=6)
+    assert pick.index == 2
+    assert pick.speed_mps == pytest.approx(9.6)
+    assert pick.class_id == OCC3D_CLASSES.index("car")
+    assert pick.centroid_m == pytest.approx((-40 + 1.6 * 16, -40 + 1.6 * 21))
+    # Two as fast: the lower index.
+    assert mover_window([parked, moving, moving], grid, 3, 6).index == 1
+    # Nothing moves (parked cars are still once the ego's motion is compensated): the turning
+    # window, at speed 0.
+    still = [parked, _mover_item([(30, 30)], [(34, 30)], turn_deg=30), parked, parked, edge]
+    pick = mover_window(still, grid, history=3, future=6)
+    assert (pick.index, pick.speed_mps, pick.class_id, pick.centroid_m) == (1, 0.0, None, None)
+    with pytest.raises(ValueError, match="classes: expected names among"):
+        mover_window(still, grid, 3, 6, classes=("driveable_surface",))
+    with pytest.raises(ValueError, match=r"lag: expected an int in \[1, 2\]"):
+        mover_window(still, grid, 3, 6, lag=3)
 
 
 def test_collision_counts_table_and_csv_hold_the_counts_behind_the_rates(tmp_path):

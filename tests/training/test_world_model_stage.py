@@ -303,7 +303,7 @@ def test_eval_tool_prints_the_table_and_writes_csv_and_markdown(trained, wm_over
     md = (tmp_path / "world_model_eval.md").read_text()
     assert "| 3D-Occ | model |" in md and "| 3D-Occ | CV-warp |" in md and "OccWorld protocol" in md
     assert "–: not applicable" in md  # the dashes are explained under the table
-    for name in ("bev_forecast.png", "trajectories.png"):  # pictures of the evaluation
+    for name in ("bev_forecast.png", "bev_movers.png", "trajectories.png"):  # its pictures
         assert (tmp_path / name).stat().st_size > 5_000
 
 
@@ -465,8 +465,8 @@ def test_one_eval_scores_both_settings_in_one_table(trained, wm_overrides, conve
     assert m2["val/camera/cv_traj/l2_at_horizon_1s"] == pytest.approx(
         m["val/cv_traj/l2_at_horizon_1s"]  # trajectories do not depend on occupancy
     )
-    png = tmp_path / "b" / "bev_forecast.png"
-    assert png.stat().st_size > 5_000
+    for name in ("bev_forecast.png", "bev_movers.png"):
+        assert (tmp_path / "b" / name).stat().st_size > 5_000
 
 
 def test_eval_only_keys_are_rejected_where_they_do_not_apply(wm_overrides, tmp_path):
