@@ -300,6 +300,7 @@ def _tampered(tmp_path, edit):
     [
         (lambda d: d["world_model"].update(kind="diffusion"), "world_model kind: expected one of"),
         (lambda d: d["world_model"]["options"].update(anchors="cv"), "anchors: expected one of"),
+        (lambda d: d["world_model"]["options"].update(movers="flow"), "movers: expected one of"),
         (lambda d: d["world_model"]["options"].pop("grid"), "world_model options: expected keys"),
         (lambda d: d["world_model"]["options"]["grid"].update(shape=[8, 8, 4]),
          r"grid shape \(8, 8, 4\) does not match the tokenizer's grid_shape"),
@@ -314,6 +315,18 @@ def test_tampered_pose_warp_bundles_are_refused(tmp_path, edit, msg):
     with pytest.raises(ValueError, match=msg) as err:
         load_planner(path)
     assert str(path) in str(err.value)
+
+
+@pytest.mark.parametrize("movers", ["static", "object_cv"])
+def test_bundles_keep_how_the_forecast_moves_others(tmp_path, movers):
+    tok, wm = make_model(seed=5)
+    wm.movers = movers
+    path = save_planner_bundle(tmp_path / "m.pt", tok, wm)
+    assert torch.load(path, weights_only=True)["world_model"]["options"]["movers"] == movers
+    assert load_planner(path).world_model.movers == movers
+    # A bundle written before the option existed (no "movers") loads as a static world.
+    old = _tampered(tmp_path, lambda d: d["world_model"]["options"].pop("movers"))
+    assert load_planner(old).world_model.movers == "static"
 
 
 def test_schema_1_token_bundles_still_load(tmp_path):
