@@ -15,9 +15,9 @@ poses its pose head predicted:
 4. **Compose** (:func:`compose_forecast`): the warp wherever its source lies on the current
    grid; elsewhere (newly revealed space) the decoded static classes the current frame holds,
    free otherwise. A token decoder's stray classes would each add a present class at IoU ~0 to
-   the mIoU, and its movers there are guesses: on the mini fixture's val split they cost 0.2
-   mIoU points at 1 s with static warps and 3.1 with moving ones (docs/world_model.md). So no
-   road user enters the grid through newly revealed space; those already on it leave it.
+   the mIoU, and its movers there are guesses that cost more than they place
+   (docs/world_model.md). So no road user enters the grid through newly revealed space; those
+   already on it leave it.
 
 Only the history occupancy, the history poses and the command are read: the forecast uses no
 future information. Poses are (x, y, yaw) in the current ego frame (x forward, y left; metres,

@@ -272,6 +272,11 @@ def test_a_later_validation_reuses_the_model_free_rows_and_scores_alike(wm_overr
     loader = DataLoader(val_set, batch_size=2)
     first = stage.compute_metrics(stage.evaluate(model, loader))
     assert len(stage._fixed_stats) == 1
+
+    def not_again(*args, **kwargs):
+        raise AssertionError("a later validation recomputed a model-free row")
+
+    stage.references = not_again  # the references read the future: scored once only
     again = stage.compute_metrics(stage.evaluate(model, loader))
     assert set(first) == set(again)
     for k, v in first.items():

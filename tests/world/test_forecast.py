@@ -88,23 +88,31 @@ class _IdentityCodec:
         return codes[:, :, 0, ..., None].repeat(1, 1, 1, 1, GRID.shape[2])
 
 
-class _CopyModel(torch.nn.Module):
-    """Scores each warped code as the certain answer."""
+class _RoadModel(torch.nn.Module):
+    """Scores the road's code as the certain answer everywhere; records what it was given."""
 
     movers = "object_cv"
 
     def forward(self, tokens, sequence_poses, command):
+        self.seen = (tokens.shape, sequence_poses.shape)
         h1 = tokens.shape[1] - S
-        return [torch.nn.functional.one_hot(tokens[:, h1:, 0], 32).permute(0, 1, 4, 2, 3).float()]
+        codes = torch.full_like(tokens[:, h1:, 0], ROAD)
+        return [torch.nn.functional.one_hot(codes, 32).permute(0, 1, 4, 2, 3).float()]
 
 
 def test_pose_warp_forecast_runs_the_four_steps_with_the_models_movers():
     hist, poses = _scene(mover_step=(0, 1))
     h, hp = torch.from_numpy(hist)[None], torch.from_numpy(poses)[None].float()
     fut = _straight_poses().float()
-    fc = pose_warp_forecast(_CopyModel(), h, hp, fut, torch.zeros(1, dtype=torch.long), GRID,
+    model = _RoadModel()
+    fc = pose_warp_forecast(model, h, hp, fut, torch.zeros(1, dtype=torch.long), GRID,
                             _IdentityCodec())  # fmt: skip
+    # The token network reads the 4 aligned history frames, then the S warped ones.
+    assert model.seen == ((1, len(hist) - 1 + S, 1, *GRID.shape[:2]), (1, len(hist) - 1 + S, 3))
     assert torch.equal(fc.warp, warp_current(h, hp, fut, GRID, "object_cv"))
     assert fc.forecast.shape == (1, S, *GRID.shape) and fc.forecast.dtype == torch.uint8
     inside = inside_mask(fut, GRID, h.device)
+    assert (~inside).any()  # the ego moves: some space is newly revealed
     assert torch.equal(fc.forecast[inside], fc.warp[inside])
+    assert (fc.net == ROAD).all()  # the decoded network forecast
+    assert (fc.forecast[~inside] == ROAD).all()  # revealed space from the network, not the warp
