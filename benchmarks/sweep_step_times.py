@@ -8,7 +8,7 @@ Usage::
 
 Runs the default point of each training stage (the world model once per forecaster, Img2Occ
 also on the quarter grid) at two step counts through the sweep's own path
-(``renderworld.bench.sweep.run_sweep``: one subprocess per point, one torch thread, resumable
+(``renderworld.bench.run.run_sweep``: one subprocess per point, one torch thread, resumable
 in ``--out``), and one planner point per grid; prints per kind the CPU seconds per step
 (difference of the two runs' training CPU time over the difference of their steps), the CPU
 seconds of the point besides its steps, and the same in wall seconds with the load average.
@@ -25,7 +25,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from renderworld.bench.sweep import expand_points, run_sweep  # noqa: E402
+from renderworld.bench.run import run_sweep  # noqa: E402
+from renderworld.bench.sweep import expand_points  # noqa: E402
 
 DEMO = Path("outputs/demo")
 KINDS = {

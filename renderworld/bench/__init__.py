@@ -2,8 +2,8 @@
 
 Modules:
     knobs            what each stage can change and what it measures
-    sweep            expand a preset into points (stage, knob, value, seed) and run each in its
-                     own process
+    sweep            expand a preset into points (stage, knob, value, seed)
+    run              run each point in its own process (reusing measured ones), ``jobs`` at once
     point            one training point: train, evaluate, time inference, report peak memory
     planner_point    one planner point: the main job's planner with one option changed, timed
     planner_latency  the planner latency machinery (shared with benchmarks/bench_planner.py)
@@ -14,4 +14,4 @@ Modules:
 """
 
 __all__ = ["estimate", "knobs", "main", "planner_latency", "planner_point", "point", "report",
-           "sweep"]  # fmt: skip
+           "run", "sweep"]  # fmt: skip

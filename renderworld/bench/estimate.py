@@ -91,8 +91,9 @@ def estimate(points: Sequence[BenchPoint], out: Path, infer_frames: int) -> dict
     return {"total_s": total, "left_s": left, "done": float(done)}
 
 
-def estimate_text(points: Sequence[BenchPoint], out: Path, infer_frames: int) -> str:
-    """One line: the estimate per stage and in all (minutes)."""
+def estimate_text(points: Sequence[BenchPoint], out: Path, infer_frames: int, jobs: int = 1) -> str:
+    """One line: the estimate per stage and in all (minutes of one-at-a-time points; with
+    ``jobs`` > 1 the wall time left is taken as the training points' time over ``jobs``)."""
     est = estimate(points, out, infer_frames)
     stages: dict[str, float] = {}
     for p in points:
@@ -100,6 +101,10 @@ def estimate_text(points: Sequence[BenchPoint], out: Path, infer_frames: int) ->
         stages[key] = stages.get(key, 0.0) + point_seconds(p)
     per = ", ".join(f"{k} {v / 60:.0f}" for k, v in stages.items())
     lo, hi = LOADED_WALL_PER_CPU
+    if jobs > 1:
+        alone = sum(point_seconds(p) for p in points if p.stage == "planner")
+        left = max(est["left_s"] - alone, 0.0) / jobs + min(alone, est["left_s"])
+        per += f"; {jobs} at a time: about {left / 60:.0f} min left"
     return (
         f"estimate: {est['total_s'] / 60:.0f} min in all ({per} min), "
         f"{est['left_s'] / 60:.0f} min left ({int(est['done'])} of {len(points)} points "

@@ -10,12 +10,13 @@ from omegaconf import OmegaConf
 
 from renderworld.bench.estimate import estimate_text
 from renderworld.bench.report import write_outputs
-from renderworld.bench.sweep import expand_points, run_sweep
+from renderworld.bench.run import run_sweep
+from renderworld.bench.sweep import expand_points
 
 __all__ = ["run_bench", "bench_points"]
 
 _TOP_KEYS = {"bench", "out", "data_root", "tokenizer_ckpt", "world_model_ckpt", "scenario_library",
-             "heldout_root", "infer_frames", "overwrite", "point_timeout_s"}  # fmt: skip
+             "heldout_root", "infer_frames", "overwrite", "point_timeout_s", "jobs"}  # fmt: skip
 
 
 def bench_points(cfg: Any) -> list:
@@ -103,10 +104,13 @@ def _folder(cfg: Any, key: str) -> Path | None:
 def run_bench(cfg: Any, repo: Path) -> dict[str, Path]:
     """Run (or resume) the sweep of ``cfg`` and write its outputs; return their paths."""
     points = bench_points(cfg)
+    jobs = cfg.get("jobs", 1)
+    if not isinstance(jobs, int) or isinstance(jobs, bool) or jobs < 1:
+        raise ValueError(f"jobs: expected an int >= 1 (points run at once), got {jobs!r}")
     out = Path(str(cfg.out)).resolve()
     name = str(cfg.bench.name)
     print(f"bench {name!r}: {len(points)} points, outputs in {out}", flush=True)
-    print(estimate_text(points, out, int(cfg.infer_frames)), flush=True)
+    print(estimate_text(points, out, int(cfg.infer_frames), jobs), flush=True)
     notes = []
     if not cfg.bench.get("ranking", False):
         staged = [k for k, s in cfg.bench.stages.items() if s.get("ranking") is not None]
@@ -127,12 +131,13 @@ def run_bench(cfg: Any, repo: Path) -> dict[str, Path]:
         repo=Path(repo),
         timeout_s=float(timeout) if timeout is not None else None,
         echo=lambda s: print(s, flush=True),
+        jobs=jobs,
     )
     wall = time.perf_counter() - t0
     measured = sum(float(r.get("point_wall_s", 0.0)) for r in results)
     title = (
         f"Bench `{name}`: accuracy vs cost ({len(points)} points; measuring them took "
-        f"{measured:.0f} s, this invocation {wall:.0f} s)"
+        f"{measured:.0f} s, this invocation {wall:.0f} s with {jobs} point(s) at a time)"
     )
     paths = write_outputs(results, out, title, notes)
     print(paths["md"].read_text(), flush=True)

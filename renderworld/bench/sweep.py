@@ -1,4 +1,4 @@
-"""Accuracy-vs-time sweep (``tools/bench.py``): expand a preset into points and run them.
+"""Accuracy-vs-time sweep (``tools/bench.py``): expand a preset into points.
 
 A point is ``(stage, knob, value, seed)``: the stage's mini experiment (``configs/experiment/``)
 with the preset's budget (the same ``trainer.max_steps`` / ``trainer.max_minutes`` for every
@@ -8,38 +8,30 @@ once per seed of its stage (``seeds``, two by default: the table shows their mea
 A stage's ``ranking`` section adds the default and a few knob points again at the main job's
 step count, so that the report can check whether the order at the budget is the order there.
 The ``planner`` stage trains nothing: its points time the main job's planner
-(``renderworld.bench.planner_latency``). Each point runs in its own subprocess
-(``python -m renderworld.bench.point``: train, evaluate, time inference, report its own peak
-RSS), one at a time, and leaves ``<out>/points/<id>/result.json``. A point whose
-``result.json`` carries the same fingerprint (stage, experiment, every override, the budget,
-the seed, the data root and the upstream files' size and mtime) is reused unless ``overwrite``;
-the package's code is not fingerprinted (after changing a model, re-measure with ``overwrite``).
+(``renderworld.bench.planner_latency``). ``renderworld.bench.run`` runs each point in its own
+subprocess and leaves ``<out>/points/<id>/result.json``. A point whose ``result.json`` carries
+the same fingerprint (stage, experiment, every override, the budget, the seed, the data root and
+the upstream files' size and mtime) is reused unless ``overwrite``; the package's code is not
+fingerprinted (after changing a model, re-measure with ``overwrite``).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import os
-import shutil
-import subprocess
-import sys
-import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Any
 
-from renderworld.bench.knobs import DEFAULT, KNOBS, STAGE_METRICS, format_value, knob_override
+from renderworld.bench.knobs import DEFAULT, KNOBS, format_value, knob_override
 
 __all__ = [
     "BenchPoint",
     "expand_points",
     "point_fingerprint",
     "point_spec",
-    "run_point",
-    "run_sweep",
     "RANKING",
 ]
 
@@ -307,104 +299,3 @@ def point_spec(point: BenchPoint, point_dir: Path, infer_frames: int, repo: Path
         "config_dir": str((Path(repo) / "configs").resolve()),
         "point_dir": str(Path(point_dir).resolve()),
     }
-
-
-def run_point(
-    point: BenchPoint, point_dir: Path, infer_frames: int, repo: Path, timeout_s: float | None
-) -> dict[str, Any]:
-    """Run one point in a fresh subprocess (1 torch thread) and return its ``result.json``.
-
-    The previous contents of ``point_dir`` are removed first (an interrupted point restarts).
-
-    Raises:
-        RuntimeError: the subprocess failed or wrote no result; the message ends with its log.
-    """
-    if point_dir.exists():
-        shutil.rmtree(point_dir)
-    point_dir.mkdir(parents=True)
-    spec = point_spec(point, point_dir, infer_frames, repo)
-    (point_dir / "spec.json").write_text(json.dumps(spec, indent=2) + "\n")
-    env = dict(os.environ)
-    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(repo), env.get("PYTHONPATH")]))
-    cmd = [sys.executable, "-m", "renderworld.bench.point", str(point_dir / "spec.json")]
-    log = point_dir / "log.txt"
-    with log.open("w") as fh:
-        try:
-            proc = subprocess.run(
-                cmd, cwd=repo, stdout=fh, stderr=subprocess.STDOUT, env=env, timeout=timeout_s
-            )
-            rc = proc.returncode
-        except subprocess.TimeoutExpired:
-            rc = "timeout"
-    result = point_dir / "result.json"
-    if rc != 0 or not result.is_file():
-        tail = "\n".join(log.read_text(errors="replace").splitlines()[-25:])
-        raise RuntimeError(f"bench point {point.point_id} failed (exit {rc}); log {log}:\n{tail}")
-    return json.loads(result.read_text())
-
-
-def run_sweep(
-    points: Sequence[BenchPoint],
-    out: Path,
-    infer_frames: int = 5,
-    overwrite: bool = False,
-    repo: Path | None = None,
-    runner: Callable[..., dict[str, Any]] = run_point,
-    timeout_s: float | None = None,
-    echo: Callable[[str], None] = print,
-) -> list[dict[str, Any]]:
-    """Run (or reuse) every point, one at a time, and return their results in order.
-
-    Args:
-        points: from :func:`expand_points`.
-        out: output folder; point ``i`` runs in ``<out>/points/<point_id>/``.
-        infer_frames: validation samples timed per point (median reported).
-        overwrite: re-run points whose stored result has the same fingerprint.
-        repo: repository root (``configs/`` and the package); default: this checkout.
-        runner: the function running one point (``run_point``; tests pass a fake).
-        timeout_s: per-point wall-clock cap (None: none).
-        echo: progress output.
-
-    Returns:
-        One dict per point: the point's ``result.json`` plus ``fingerprint``, ``reused``.
-    """
-    if not isinstance(infer_frames, int) or isinstance(infer_frames, bool) or infer_frames < 1:
-        raise ValueError(f"infer_frames: expected an int >= 1, got {infer_frames!r}")
-    repo = Path(repo) if repo is not None else Path(__file__).resolve().parents[2]
-    out = Path(out)
-    results = []
-    t_sweep = time.perf_counter()
-    for i, point in enumerate(points, 1):
-        fp = point_fingerprint(point, infer_frames)
-        pdir = out / "points" / point.point_id
-        stored = pdir / "result.json"
-        head = f"[{i}/{len(points)}] {point.point_id}"
-        if not overwrite and stored.is_file():
-            res = json.loads(stored.read_text())
-            if res.get("fingerprint") == fp:
-                echo(f"{head}: reused ({_summary(res)})")
-                results.append({**res, "reused": True})
-                continue
-        echo(f"{head}: running ...")
-        t0 = time.perf_counter()
-        res = runner(point, pdir, infer_frames, repo, timeout_s)
-        res = {**res, "fingerprint": fp, "point_wall_s": time.perf_counter() - t0,
-               "seed": point.seed, "phase": point.phase, "claimed": point.claimed}  # fmt: skip
-        stored.write_text(json.dumps(res, indent=2) + "\n")
-        echo(f"{head}: {res['point_wall_s']:.0f} s ({_summary(res)})")
-        results.append({**res, "reused": False})
-    echo(f"sweep: {len(points)} points in {time.perf_counter() - t_sweep:.0f} s")
-    return results
-
-
-def _summary(res: Mapping[str, Any]) -> str:
-    name, _, label = STAGE_METRICS[res["stage"]]["metric"]
-    m = res.get("metrics", {}).get(name)
-    scale = 100 if "%" in label else 1
-    mtxt = f"{name}={scale * m:.2f}" if isinstance(m, (int, float)) else f"{name}=?"
-    return (
-        f"{mtxt}, train {res.get('train_s', float('nan')):.0f} s, "
-        f"infer {res.get('infer_ms', float('nan')):.1f} ms, "
-        f"peak {res.get('peak_rss_mib', float('nan')):.0f} MiB"
-    )

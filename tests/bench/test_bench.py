@@ -10,6 +10,8 @@ import csv
 import json
 import math
 import os
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -26,12 +28,12 @@ from renderworld.bench.report import (
     stage_table,
     write_outputs,
 )
+from renderworld.bench.run import run_sweep
 from renderworld.bench.sweep import (
     RANKING,
     BenchPoint,
     expand_points,
     point_fingerprint,
-    run_sweep,
 )
 from renderworld.training.checkpoint import load_checkpoint
 from tests.training.conftest import compose_cfg
@@ -368,6 +370,62 @@ def test_sweep_reuses_measured_points_and_reruns_changed_ones(tmp_path):
     assert calls == [p.point_id for p in pts]
     with pytest.raises(ValueError, match="infer_frames: expected an int >= 1, got 0"):
         run_sweep(pts, tmp_path, infer_frames=0, **quiet)
+
+
+def test_sweep_with_two_jobs_runs_training_points_side_by_side_and_planner_points_alone(tmp_path):
+    preset = _preset(tokenizer=TOK, planner={"knobs": {"forecast": [False]}})
+    pts = expand_points(preset, upstream={"planner": ["tokenizer_ckpt=/t", "world_model_ckpt=/w"]})
+    training = [p.point_id for p in pts if p.stage != "planner"]
+    lock = threading.Lock()
+    state = {"now": 0, "most": 0, "planner_beside": 0}
+    calls: list[str] = []
+    inner = _fake_runner(calls)
+
+    def runner(point, point_dir, infer_frames, repo, timeout_s):
+        with lock:
+            state["now"] += 1
+            state["most"] = max(state["most"], state["now"])
+            if point.stage == "planner" and state["now"] > 1:
+                state["planner_beside"] += 1
+        time.sleep(0.05)  # long enough for a second job to start beside this one
+        with lock:
+            res = inner(point, point_dir, infer_frames, repo, timeout_s)
+            state["now"] -= 1
+        return res
+
+    results = run_sweep(pts, tmp_path, infer_frames=3, runner=runner, echo=lambda s: None, jobs=2)
+    assert [r["stage"] + r["knob"] for r in results] == [p.stage + p.knob for p in pts]
+    assert [(r["seed"], r["reused"]) for r in results] == [(p.seed, False) for p in pts]
+    assert state["most"] == 2 and state["planner_beside"] == 0
+    assert calls[-2:] == [p.point_id for p in pts if p.stage == "planner"]
+    assert {r["jobs"] for r in results if r["stage"] != "planner"} == {2}
+    assert {r["jobs"] for r in results if r["stage"] == "planner"} == {1}
+    stored = tmp_path / "points" / training[-1] / "result.json"
+    assert json.loads(stored.read_text())["jobs"] == 2
+    calls.clear()
+    again = run_sweep(pts, tmp_path, infer_frames=3, runner=runner, echo=lambda s: None, jobs=2)
+    assert calls == [] and all(r["reused"] for r in again)
+    with pytest.raises(ValueError, match="jobs: expected an int >= 1, got 0"):
+        run_sweep(pts, tmp_path, infer_frames=3, runner=runner, jobs=0)
+
+
+def test_sweep_with_two_jobs_starts_nothing_after_a_failure_and_keeps_what_ran(tmp_path):
+    pts = expand_points(_preset(tokenizer=TOK))
+    calls: list[str] = []
+    inner = _fake_runner(calls)
+
+    def runner(point, point_dir, infer_frames, repo, timeout_s):
+        if point.point_id == pts[1].point_id:
+            raise RuntimeError(f"bench point {point.point_id} failed (exit 1)")
+        time.sleep(0.1)
+        return inner(point, point_dir, infer_frames, repo, timeout_s)
+
+    with pytest.raises(RuntimeError, match=f"bench point {pts[1].point_id} failed"):
+        run_sweep(pts, tmp_path, infer_frames=3, runner=runner, echo=lambda s: None, jobs=2)
+    # The point running beside the failed one finished and kept its result; none started after.
+    assert calls == [pts[0].point_id]
+    assert (tmp_path / "points" / pts[0].point_id / "result.json").is_file()
+    assert not (tmp_path / "points" / pts[2].point_id).exists()
 
 
 # ---------------------------------------------------------------------- writers

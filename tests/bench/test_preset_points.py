@@ -18,7 +18,8 @@ from omegaconf import OmegaConf
 from data_converters import ConvertOptions, create_data
 from renderworld.bench.knobs import DEFAULT, KNOBS, STAGE_METRICS, format_value
 from renderworld.bench.main import bench_points
-from renderworld.bench.sweep import BenchPoint, point_spec, run_sweep
+from renderworld.bench.run import run_sweep
+from renderworld.bench.sweep import BenchPoint, point_spec
 from renderworld.training.api import train
 from tests.training.conftest import compose_cfg
 
