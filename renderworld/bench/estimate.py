@@ -101,13 +101,14 @@ def estimate_text(points: Sequence[BenchPoint], out: Path, infer_frames: int, jo
         stages[key] = stages.get(key, 0.0) + point_seconds(p)
     per = ", ".join(f"{k} {v / 60:.0f}" for k, v in stages.items())
     lo, hi = LOADED_WALL_PER_CPU
+    wall = ""
     if jobs > 1:
         alone = sum(point_seconds(p) for p in points if p.stage == "planner")
         left = max(est["left_s"] - alone, 0.0) / jobs + min(alone, est["left_s"])
-        per += f"; {jobs} at a time: about {left / 60:.0f} min left"
+        wall = f"; {jobs} points at a time: about {left / 60:.0f} min of wall time left"
     return (
-        f"estimate: {est['total_s'] / 60:.0f} min in all ({per} min), "
+        f"estimate: {est['total_s'] / 60:.0f} min of points in all ({per} min), "
         f"{est['left_s'] / 60:.0f} min left ({int(est['done'])} of {len(points)} points "
-        f"already measured) on a machine that runs nothing else; {lo:g}-{hi:g}x that beside "
-        f"other jobs (per-step {MEASURED})"
+        f"already measured) on a machine that runs nothing else{wall}; {lo:g}-{hi:g}x that "
+        f"beside other jobs (per-step {MEASURED})"
     )

@@ -14,6 +14,7 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
@@ -105,6 +106,12 @@ def run_sweep(
         raise ValueError(f"jobs: expected an int >= 1, got {jobs!r}")
     repo = Path(repo) if repo is not None else Path(__file__).resolve().parents[2]
     out = Path(out)
+    lock = threading.Lock()
+
+    def say(line: str) -> None:  # one whole line at a time when points run side by side
+        with lock:
+            echo(line)
+
     results: list[dict[str, Any] | None] = [None] * len(points)
     todo = []
     t_sweep = time.perf_counter()
@@ -114,14 +121,14 @@ def run_sweep(
         if not overwrite and stored.is_file():
             res = json.loads(stored.read_text())
             if res.get("fingerprint") == fp:
-                echo(f"[{i + 1}/{len(points)}] {point.point_id}: reused ({_summary(res)})")
+                say(f"[{i + 1}/{len(points)}] {point.point_id}: reused ({_summary(res)})")
                 results[i] = {**res, "reused": True}
                 continue
         todo.append((i, point, fp))
 
     def measure(i: int, point: BenchPoint, fp: str, at_once: int = jobs) -> dict[str, Any]:
         head = f"[{i + 1}/{len(points)}] {point.point_id}"
-        echo(f"{head}: running ...")
+        say(f"{head}: running ...")
         pdir = out / "points" / point.point_id
         t0 = time.perf_counter()
         res = runner(point, pdir, infer_frames, repo, timeout_s)
@@ -129,7 +136,7 @@ def run_sweep(
                "seed": point.seed, "phase": point.phase, "claimed": point.claimed,
                "jobs": at_once}  # fmt: skip
         (pdir / "result.json").write_text(json.dumps(res, indent=2) + "\n")
-        echo(f"{head}: {res['point_wall_s']:.0f} s ({_summary(res)})")
+        say(f"{head}: {res['point_wall_s']:.0f} s ({_summary(res)})")
         return {**res, "reused": False}
 
     alone = [t for t in todo if jobs == 1 or t[1].stage in ALONE]
@@ -137,7 +144,7 @@ def run_sweep(
         _run_parallel([t for t in todo if t not in alone], measure, jobs, results)
     for i, point, fp in alone:
         results[i] = measure(i, point, fp, 1)
-    echo(f"sweep: {len(points)} points in {time.perf_counter() - t_sweep:.0f} s")
+    say(f"sweep: {len(points)} points in {time.perf_counter() - t_sweep:.0f} s")
     return [r for r in results if r is not None]
 
 
