@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -13,7 +14,7 @@ from renderworld.bench.report import write_outputs
 from renderworld.bench.run import run_sweep
 from renderworld.bench.sweep import expand_points
 
-__all__ = ["run_bench", "bench_points"]
+__all__ = ["run_bench", "bench_points", "resolve_jobs"]
 
 _TOP_KEYS = {"bench", "out", "data_root", "tokenizer_ckpt", "world_model_ckpt", "scenario_library",
              "heldout_root", "infer_frames", "overwrite", "point_timeout_s", "jobs"}  # fmt: skip
@@ -83,6 +84,20 @@ def bench_points(cfg: Any) -> list:
     )
 
 
+def resolve_jobs(jobs: Any) -> int:
+    """How many training points run at once: ``jobs``, or for None both cores of the 2-core CPU
+    the presets are sized for (1 on a 1-core machine).
+
+    Raises:
+        ValueError: ``jobs`` is not None or an int >= 1 (the message names ``jobs``).
+    """
+    if jobs is None:
+        return min(2, os.cpu_count() or 1)
+    if not isinstance(jobs, int) or isinstance(jobs, bool) or jobs < 1:
+        raise ValueError(f"jobs: expected an int >= 1 or null (points run at once), got {jobs!r}")
+    return jobs
+
+
 def _required_file(cfg: Any, key: str, what: str) -> Path:
     path = Path(str(cfg.get(key))).resolve()
     if not path.is_file():
@@ -104,9 +119,7 @@ def _folder(cfg: Any, key: str) -> Path | None:
 def run_bench(cfg: Any, repo: Path) -> dict[str, Path]:
     """Run (or resume) the sweep of ``cfg`` and write its outputs; return their paths."""
     points = bench_points(cfg)
-    jobs = cfg.get("jobs", 1)
-    if not isinstance(jobs, int) or isinstance(jobs, bool) or jobs < 1:
-        raise ValueError(f"jobs: expected an int >= 1 (points run at once), got {jobs!r}")
+    jobs = resolve_jobs(cfg.get("jobs"))
     out = Path(str(cfg.out)).resolve()
     name = str(cfg.bench.name)
     print(f"bench {name!r}: {len(points)} points, outputs in {out}", flush=True)

@@ -19,7 +19,7 @@ from omegaconf import OmegaConf
 
 from data_converters import ConvertOptions, create_data
 from renderworld.bench.knobs import KNOBS, format_value
-from renderworld.bench.main import bench_points
+from renderworld.bench.main import bench_points, resolve_jobs
 from renderworld.bench.report import (
     pareto_front,
     ranking_check,
@@ -407,6 +407,16 @@ def test_sweep_with_two_jobs_runs_training_points_side_by_side_and_planner_point
     assert calls == [] and all(r["reused"] for r in again)
     with pytest.raises(ValueError, match="jobs: expected an int >= 1, got 0"):
         run_sweep(pts, tmp_path, infer_frames=3, runner=runner, jobs=0)
+
+
+def test_jobs_default_to_the_cores_up_to_two_and_bad_values_name_the_key(monkeypatch):
+    monkeypatch.setattr(os, "cpu_count", lambda: 16)
+    assert resolve_jobs(None) == 2 and resolve_jobs(3) == 3
+    monkeypatch.setattr(os, "cpu_count", lambda: 1)
+    assert resolve_jobs(None) == 1
+    for bad in (0, "2", True, 1.5):
+        with pytest.raises(ValueError, match="jobs: expected an int >= 1 or null"):
+            resolve_jobs(bad)
 
 
 def test_sweep_with_two_jobs_starts_nothing_after_a_failure_and_keeps_what_ran(tmp_path):
