@@ -34,7 +34,8 @@ CSV_COLUMNS = (
     "stage", "knob", "value", "seed", "phase", "claimed", "is_default", "metric_name", "metric",
     "metric2_name", "metric2", "heldout", "steps", "max_steps", "max_minutes", "train_s",
     "train_wall_s", "train_cpu_s", "eval_s", "infer_ms", "infer_frames", "peak_rss_mib",
-    "params", "point_wall_s", "point_cpu_s", "grid", "experiment", "fingerprint", "reused",
+    "params", "point_wall_s", "point_cpu_s", "jobs", "grid", "experiment", "fingerprint",
+    "reused",
 )  # fmt: skip
 
 
@@ -90,6 +91,7 @@ def result_rows(results: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
             seed=r.get("seed", 0),
             phase=r.get("phase", ""),
             claimed=r.get("claimed", True),
+            jobs=r.get("jobs", 1),
             heldout=metrics.get(held[0], float("nan")) if held else float("nan"),
             value=value,
             is_default=r["knob"] == DEFAULT,
@@ -215,12 +217,14 @@ def stage_table(rows: Sequence[Mapping[str, Any]], stage: str) -> str:
         + (f"{held[1]} | " if show_held else "")
         + "steps | train s | × default | infer ms | × default | peak RSS MiB | params |"
     )
-    cols = 13 + (1 if show_held else 0)
+    cols = head.count("|") - 1
+    jobs = sorted({int(_num(r.get("jobs", 1))) for r in rows if r["stage"] == stage})
+    at_once = "/".join(map(str, jobs)) + " point(s) at a time"
     lines = [
         f"**{stage}** — budget per point: {budget}; grid of the default point: "
         f"{ref['grid'] if ref else '?'}; seeds per point: {'/'.join(map(str, seeds))} (mean; "
         f'± half the range; a Δ within the larger range of the two points reads "no '
-        f'difference"). Inference sample: {spec["sample"]}.'
+        f'difference"). Measured {at_once}. Inference sample: {spec["sample"]}.'
         + ("" if claim else " **Ranking not claimed**: this budget is below the stable one."),
         "",
         head,

@@ -469,6 +469,11 @@ def test_table_shows_seed_means_and_spread_and_calls_small_deltas_no_difference(
     table = stage_table(rows, "tokenizer")
     lines = [line for line in table.splitlines() if line.startswith("| ")]
     assert len(lines) == 5  # header + one row per point, seeds merged
+    rule = next(line for line in table.splitlines() if line.startswith("|---"))
+    assert {line.count("|") for line in [*lines, rule]} == {lines[0].count("|")}  # GFM: same width
+    assert "Measured 1 point(s) at a time" in table
+    two = stage_table([{**r, "jobs": 2} for r in rows], "tokenizer")
+    assert "Measured 2 point(s) at a time" in two
     # default: mean 41.00, ± half the range 1.00; train 41 s
     assert lines[1].startswith("| **default** (codebook_size=256) | 41.00 | 1.00 | +0.00 |")
     # K = 64: mean 32.00, Δ -9.00 beyond both ranges (4.00 and 2.00)
