@@ -362,8 +362,8 @@ def plot_pareto(rows: Sequence[Mapping[str, Any]], stage: str, path: Path) -> Pa
             if r["knob"] == DEFAULT:
                 ax.scatter([costs[i]], [values[i]], marker="*", s=160, color="tab:blue",
                            zorder=4, label="default")  # fmt: skip
-            ax.annotate(
-                _label(r), (costs[i], values[i]), fontsize=7, xytext=(4, 3),
+            ax.annotate(  # labels alternate above / below so that near points stay legible
+                _label(r), (costs[i], values[i]), fontsize=7, xytext=(4, 3 if i % 2 else -10),
                 textcoords="offset points", fontweight="bold" if r["knob"] == DEFAULT else "normal",
             )  # fmt: skip
         ax.set_xlabel(xlabel)
@@ -381,7 +381,7 @@ def plot_pareto(rows: Sequence[Mapping[str, Any]], stage: str, path: Path) -> Pa
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=80)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
 
