@@ -1,14 +1,14 @@
 """How long a sweep will take, printed before it starts.
 
 Each training point costs ``POINT_S[kind]`` (process start, data, final evaluation, inference
-timing) plus its steps times ``STEP_S[kind]``, and ``LIBRARY_S`` more when it trains on the
-scenario library; a planner point costs ``PLANNER_POINT_S[grid]``. The figures are **CPU
-seconds** of one-thread points measured with ``benchmarks/sweep_step_times.py`` on the 2-core
-CPU the presets are sized for (``MEASURED``): on a machine that runs nothing else a one-thread
-point's wall time is close to its CPU time; on a shared one its wall time grows with the
-others' load (``LOADED_WALL_PER_CPU`` was measured beside other jobs). Points already measured
-in the output folder (same fingerprint) count their recorded wall time.
-"""
+timing) plus its steps times ``STEP_S[kind]``, and ``LIBRARY_S`` + steps times
+``LIBRARY_STEP_S`` more when it trains on the scenario library; a planner point costs
+``PLANNER_POINT_S[grid]``. The figures are **CPU seconds** of one-thread points of the quick and
+standard presets, measured two at a time on the 2-core CPU the presets are sized for
+(``MEASURED``): with ``jobs`` points at a time on a machine that runs nothing else the wall time
+is about the CPU time over ``jobs``; on a shared one it grows with the others' load
+(``LOADED_WALL_PER_CPU`` was measured beside other jobs). Points already measured in the output
+folder (same fingerprint) count their recorded wall time."""
 
 from __future__ import annotations
 
@@ -18,33 +18,35 @@ from pathlib import Path
 
 from renderworld.bench.sweep import BenchPoint, point_fingerprint
 
-__all__ = ["MEASURED", "STEP_S", "POINT_S", "LIBRARY_S", "PLANNER_POINT_S", "KNOB_FACTOR",
+__all__ = ["MEASURED", "STEP_S", "POINT_S", "LIBRARY_S", "LIBRARY_STEP_S",
+           "PLANNER_POINT_S", "KNOB_FACTOR",
            "LOADED_WALL_PER_CPU", "point_seconds", "estimate", "estimate_text"]  # fmt: skip
 
 #: Where and when the figures below were measured.
 MEASURED = (
-    "CPU seconds measured 2026-11-26 at commit 471fa24 on the 2-core CPU while it ran other jobs "
-    "(load average 6-7)"
+    "CPU seconds of the points of bench=quick and bench=standard, 2026-11-26, commit 89ae1a7, "
+    "2 points at a time on a 2-core Zen 4 CPU that ran nothing else"
 )
-#: CPU seconds per optimizer step, 1 torch thread: tokenizer_mini 0.36 and world_model_mini
-#: (pose_warp) 0.85 measured (``benchmarks/sweep_step_times.py --steps 5 20``); the token
-#: forecaster is taken as the pose-warp one's and Img2Occ's from its documented 0.22 s a step
-#: at 2 threads (docs/experiments.md), both not measured here.
-STEP_S = {"tokenizer": 0.36, "img2occ": 0.4, "world_model/pose_warp": 0.85,
-          "world_model/tokens": 0.85}  # fmt: skip
+#: CPU seconds per optimizer step, 1 torch thread: the slope between the quick and the standard
+#: budget of the same point (tokenizer 40 -> 250 steps, Img2Occ 40 -> 200, world model
+#: 20 -> 400); the world model's without the scenario library (its per-step share below).
+STEP_S = {"tokenizer": 0.33, "img2occ": 0.38, "world_model/pose_warp": 0.67,
+          "world_model/tokens": 0.48}  # fmt: skip
 #: CPU seconds per point besides its steps (process start, data, the final evaluation on
-#: mini_val, Img2Occ's threshold search, inference timing): measured for the tokenizer (6.8),
-#: Img2Occ (237 at 5 steps) and the pose-warp world model (29.6).
-POINT_S = {"tokenizer": 6.8, "img2occ": 230.0, "world_model/pose_warp": 29.6,
-           "world_model/tokens": 29.6}  # fmt: skip
-#: Extra CPU seconds of a world-model point that trains on the scenario library (its windows'
-#: frames are read and encoded once): not measured here (no library on the measuring machine).
-LIBRARY_S = 60.0
-#: CPU seconds of one planner point per grid: mini measured (6.4, 7 windows); occ3d not.
-PLANNER_POINT_S = {"mini": 6.4, "occ3d": 60.0}
-#: Per-step cost of a knob value relative to the stage default's (not measured: from the
-#: 8a2fb97 quick run's train-time ratios, docs/experiments.md).
-KNOB_FACTOR = {("img2occ", "grid", "quarter"): 1.2, ("img2occ", "grid", "half"): 4.0}
+#: mini_val, Img2Occ's threshold search on 24 samples, inference timing).
+POINT_S = {"tokenizer": 7.0, "img2occ": 76.0, "world_model/pose_warp": 30.0,
+           "world_model/tokens": 12.0}  # fmt: skip
+#: Extra CPU seconds of a world-model point that trains on the scenario library: once (its
+#: windows' frames read and encoded) and per step (more frames to load).
+LIBRARY_S = 32.0
+LIBRARY_STEP_S = 0.1
+#: CPU seconds of one planner point per grid (7 windows; occ3d: untrained paper-sized models).
+PLANNER_POINT_S = {"mini": 6.0, "occ3d": 99.0}
+#: Per-step cost of a knob value relative to the stage default's (grid: from the 8a2fb97 quick
+#: run's train-time ratios; the others measured by the standard run).
+KNOB_FACTOR = {("img2occ", "grid", "quarter"): 1.2, ("img2occ", "grid", "half"): 4.0,
+               ("img2occ", "input_size", "[64, 112]"): 0.7,
+               ("img2occ", "fine_semantics", "False"): 0.75}  # fmt: skip
 #: Wall seconds per CPU second of a point measured while the machine ran other jobs (load
 #: average 6-7): 5.4 (Img2Occ) to 13 (tokenizer). On a machine that runs nothing else, ~1.
 LOADED_WALL_PER_CPU = (5.4, 13.0)
@@ -68,7 +70,7 @@ def point_seconds(point: BenchPoint) -> float:
     seconds = POINT_S[kind] + steps * STEP_S[kind] * factor
     library = _last(point.overrides, "stage.extra_train_roots")
     if library not in (None, "[]"):
-        seconds += LIBRARY_S
+        seconds += LIBRARY_S + steps * LIBRARY_STEP_S
     return seconds
 
 
