@@ -599,3 +599,28 @@ def test_planner_rows_table_in_metres_and_a_latency_only_plot(tmp_path):
     assert "| **default** (forecast=true) | 1.83 | – | +0.00 | 100.00 |" in md  # L2 in metres
     assert "| forecast=false | 1.83 | – | +0.00 |" in md and "| 40.0 | 0.33× |" in md
     assert paths["pareto_planner"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+# ---------------------------------------------------------------------- time estimate
+def test_estimate_charges_steps_the_library_and_halves_the_wall_time_with_two_jobs(tmp_path):
+    from renderworld.bench.estimate import estimate, estimate_text, point_seconds
+
+    wm = {"experiment": "world_model_mini", "budget": {"max_steps": 400}, "knobs": {}}
+    plain = expand_points(_preset(world_model=wm))[0]
+    longer = expand_points(_preset(world_model={**wm, "budget": {"max_steps": 800}}))[0]
+    library = expand_points(
+        _preset(world_model=wm), upstream={"world_model": ["stage.extra_train_roots=[/lib]"]}
+    )[0]
+    assert point_seconds(plain) < point_seconds(library) < point_seconds(longer) + 200
+    assert point_seconds(longer) > 1.5 * point_seconds(plain)  # the steps dominate at 400
+
+    pts = expand_points(_preset(tokenizer=TOK))
+    left = estimate(pts, tmp_path, 3)["left_s"]
+    assert left == pytest.approx(sum(point_seconds(p) for p in pts))
+    one, two = estimate_text(pts, tmp_path, 3, 1), estimate_text(pts, tmp_path, 3, 2)
+    assert "of wall time left" not in one
+    assert f"2 points at a time: about {left / 2 / 60:.0f} min of wall time left" in two
+    # A measured point counts its recorded wall time and is not left to run.
+    run_sweep(pts[:1], tmp_path, infer_frames=3, runner=_fake_runner([]), echo=lambda s: None)
+    est = estimate(pts, tmp_path, 3)
+    assert est["done"] == 1 and est["left_s"] == pytest.approx(left - point_seconds(pts[0]))
