@@ -9,9 +9,9 @@ Modules:
     planner_latency  the planner latency machinery (shared with benchmarks/bench_planner.py)
     estimate         the preset's time estimate printed at start
     report           ``results.csv``, per-stage tables (seed mean and spread, ranking check)
-                     and Pareto plots
-    main             a composed ``configs/bench.yaml`` -> sweep -> outputs
+    plots            Pareto plots per stage, the planner's latency chart
+    main             a composed ``configs/bench.yaml`` -> sweep -> tables and plots
 """
 
-__all__ = ["estimate", "knobs", "main", "planner_latency", "planner_point", "point", "report",
-           "run", "sweep"]  # fmt: skip
+__all__ = ["estimate", "knobs", "main", "planner_latency", "planner_point", "plots", "point",
+           "report", "run", "sweep"]  # fmt: skip

@@ -4,17 +4,19 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from omegaconf import OmegaConf
 
 from renderworld.bench.estimate import estimate_text
-from renderworld.bench.report import write_outputs
+from renderworld.bench.plots import plot_pareto
+from renderworld.bench.report import result_rows, write_csv, write_markdown
 from renderworld.bench.run import run_sweep
 from renderworld.bench.sweep import expand_points
 
-__all__ = ["run_bench", "bench_points", "resolve_jobs"]
+__all__ = ["run_bench", "bench_points", "resolve_jobs", "write_outputs"]
 
 _TOP_KEYS = {"bench", "out", "data_root", "tokenizer_ckpt", "world_model_ckpt", "scenario_library",
              "heldout_root", "infer_frames", "overwrite", "point_timeout_s", "jobs"}  # fmt: skip
@@ -155,4 +157,19 @@ def run_bench(cfg: Any, repo: Path) -> dict[str, Path]:
     paths = write_outputs(results, out, title, notes)
     print(paths["md"].read_text(), flush=True)
     print("wrote " + ", ".join(str(p) for p in paths.values()), flush=True)
+    return paths
+
+
+def write_outputs(
+    results: Sequence[Mapping[str, Any]], out: Path, title: str = "", notes: Sequence[str] = ()
+) -> dict[str, Path]:
+    """``results.csv``, ``results.md`` and one ``pareto_<stage>.png`` per stage under ``out``."""
+    rows = result_rows(results)
+    out = Path(out)
+    paths = {"csv": write_csv(rows, out / "results.csv")}
+    paths["md"] = write_markdown(rows, out / "results.md", title, notes)
+    for stage in dict.fromkeys(r["stage"] for r in rows):
+        png = plot_pareto(rows, stage, out / f"pareto_{stage}.png")
+        if png is not None:
+            paths[f"pareto_{stage}"] = png
     return paths

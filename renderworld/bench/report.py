@@ -1,9 +1,8 @@
-"""Tables and Pareto plots of a bench sweep (``renderworld.bench.sweep``).
+"""Tables of a bench sweep (``renderworld.bench.sweep``); the pictures: ``renderworld.bench.plots``.
 
-``results.csv`` (one row per point and seed, every column), ``results.md`` (a table per stage:
+``results.csv`` (one row per point and seed, every column) and ``results.md`` (a table per stage:
 mean and spread over the seeds, Δ and ratios against the stage's default point, "no difference"
-within the seeds' spread; the ranking check where the preset has one) and ``pareto_<stage>.png``
-(metric vs training time and vs inference ms, default marked, Pareto front drawn).
+within the seeds' spread; the ranking check where the preset has one).
 """
 
 from __future__ import annotations
@@ -19,15 +18,14 @@ from renderworld.bench.sweep import RANKING
 
 __all__ = [
     "aggregate",
+    "as_float",
+    "point_label",
     "ranking_check",
     "ranking_text",
-    "pareto_front",
     "result_rows",
     "stage_table",
     "write_csv",
     "write_markdown",
-    "plot_pareto",
-    "write_outputs",
 ]
 
 CSV_COLUMNS = (
@@ -37,40 +35,6 @@ CSV_COLUMNS = (
     "params", "point_wall_s", "point_cpu_s", "jobs", "grid", "experiment", "fingerprint",
     "reused",
 )  # fmt: skip
-
-
-def pareto_front(costs: Sequence[float], values: Sequence[float]) -> list[int]:
-    """Indices of the non-dominated points (lower cost and higher value are better).
-
-    A point is dominated when another has cost <= and value >= with one of them strict.
-    Points with a NaN cost or value are never on the front (and dominate nothing). Equal
-    points are all kept.
-
-    Args:
-        costs: [N] e.g. training seconds.
-        values: [N] e.g. mIoU.
-
-    Returns:
-        Indices into the inputs, sorted by cost.
-
-    Raises:
-        ValueError: the sequences differ in length.
-    """
-    if len(costs) != len(values):
-        raise ValueError(
-            f"costs, values: expected the same length, got {len(costs)} and {len(values)}"
-        )
-    pts = [
-        (float(c), float(v), i)
-        for i, (c, v) in enumerate(zip(costs, values, strict=True))
-        if not (math.isnan(float(c)) or math.isnan(float(v)))
-    ]
-    front = []
-    for c, v, i in pts:
-        dominated = any(c2 <= c and v2 >= v and (c2 < c or v2 > v) for c2, v2, j in pts if j != i)
-        if not dominated:
-            front.append((c, i))
-    return [i for _, i in sorted(front)]
 
 
 def result_rows(results: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
@@ -131,13 +95,15 @@ def _fmt(x: Any, pct: bool, digits: int = 2) -> str:
     return f"{100 * x:.{digits}f}" if pct else f"{x:.{digits}f}"
 
 
-def _label(row: Mapping[str, Any]) -> str:
+def point_label(row: Mapping[str, Any]) -> str:
+    """``default`` or ``knob=value``: how tables and plots name a point."""
     if row["knob"] == DEFAULT:
         return "default"
     return f"{row['knob']}={row['value']}"
 
 
-def _num(x: Any) -> float:
+def as_float(x: Any) -> float:
+    """``float(x)``, NaN when it is not a number (empty CSV cells, None)."""
     try:
         return float(x)
     except (TypeError, ValueError):
@@ -169,10 +135,10 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     for members in groups.values():
         agg = dict(members[0])
         for k in ("metric", "metric2", "heldout", "train_s", "infer_ms", "steps"):
-            agg[k] = _mean([_num(m.get(k)) for m in members])
-        agg["spread"] = _range([_num(m["metric"]) for m in members])
+            agg[k] = _mean([as_float(m.get(k)) for m in members])
+        agg["spread"] = _range([as_float(m["metric"]) for m in members])
         agg["seeds"] = len(members)
-        agg["peak_rss_mib"] = max(_num(m["peak_rss_mib"]) for m in members)
+        agg["peak_rss_mib"] = max(as_float(m["peak_rss_mib"]) for m in members)
         out.append(agg)
     return out
 
@@ -185,7 +151,7 @@ def _delta(row: Mapping[str, Any], ref: Mapping[str, Any] | None, pct: bool) -> 
     if row is ref:
         return "+0.00"
     text = f"{100 * d:+.2f}" if pct else f"{d:+.2f}"
-    spread = max(_num(row.get("spread")), _num(ref.get("spread")))
+    spread = max(as_float(row.get("spread")), as_float(ref.get("spread")))
     if not math.isnan(spread) and abs(d) <= spread:
         return f"{text} (no difference)"
     return text
@@ -218,7 +184,7 @@ def stage_table(rows: Sequence[Mapping[str, Any]], stage: str) -> str:
         + "steps | train s | × default | infer ms | × default | peak RSS MiB | params |"
     )
     cols = head.count("|") - 1
-    jobs = sorted({int(_num(r.get("jobs", 1))) for r in rows if r["stage"] == stage})
+    jobs = sorted({int(as_float(r.get("jobs", 1))) for r in rows if r["stage"] == stage})
     at_once = "/".join(map(str, jobs)) + " point(s) at a time"
     lines = [
         f"**{stage}** — budget per point: {budget}; grid of the default point: "
@@ -231,10 +197,10 @@ def stage_table(rows: Sequence[Mapping[str, Any]], stage: str) -> str:
         "|---|" + "---:|" * (cols - 1),
     ]
     for r in mine:
-        name = _label(r)
+        name = point_label(r)
         if r["knob"] == DEFAULT:
             name = "**default**" + (f" ({r['value']})" if r["value"] else "")
-        spread = _num(r["spread"]) / 2
+        spread = as_float(r["spread"]) / 2
         lines.append(
             f"| {name} | {_fmt(r['metric'], m1_pct)} | {_fmt(spread, m1_pct)} | "
             f"{_delta(r, ref, m1_pct)} | {_fmt(r['metric2'], m2_pct)} | "
@@ -243,7 +209,7 @@ def stage_table(rows: Sequence[Mapping[str, Any]], stage: str) -> str:
             f"{_ratio(r['train_s'], ref['train_s']) if ref else '–'} | "
             f"{_fmt(r['infer_ms'], False, 1)} | "
             f"{_ratio(r['infer_ms'], ref['infer_ms']) if ref else '–'} | "
-            f"{_fmt(r['peak_rss_mib'], False, 0)} | {int(_num(r['params'])):,} |"
+            f"{_fmt(r['peak_rss_mib'], False, 0)} | {int(as_float(r['params'])):,} |"
         )
     return "\n".join(lines)
 
@@ -270,21 +236,21 @@ def ranking_check(rows: Sequence[Mapping[str, Any]], stage: str) -> dict[str, An
 
     def order(items):
         ranked = sorted(items, key=lambda r: r["metric"], reverse=higher)
-        return [_label(r) for r in ranked]
+        return [point_label(r) for r in ranked]
 
     contradictions = []
     for i, (b1, f1) in enumerate(pairs):
         for b2, f2 in pairs[i + 1 :]:
             d_budget = b1["metric"] - b2["metric"]
             d_full = f1["metric"] - f2["metric"]
-            spread = max(_num(b1["spread"]), _num(b2["spread"]))
+            spread = max(as_float(b1["spread"]), as_float(b2["spread"]))
             tie = not math.isnan(spread) and abs(d_budget) <= spread
             if not tie and d_budget * d_full < 0:
-                contradictions.append((_label(b1), _label(b2)))
+                contradictions.append((point_label(b1), point_label(b2)))
     return {
         "budget_order": order([b for b, _ in pairs]),
         "full_order": order([f for _, f in pairs]),
-        "full_steps": int(_num(full[0]["max_steps"])),
+        "full_steps": int(as_float(full[0]["max_steps"])),
         "contradictions": contradictions,
         "holds": not contradictions,
     }
@@ -321,81 +287,3 @@ def write_markdown(
     parts += list(notes)
     path.write_text("\n\n".join(parts) + "\n")
     return path
-
-
-def plot_pareto(rows: Sequence[Mapping[str, Any]], stage: str, path: Path) -> Path | None:
-    """Metric vs training s (left) and vs inference ms (right), one marker per point (mean over
-    seeds, bar: the seeds' range), the default point a star, the Pareto front drawn.
-
-    The planner trains nothing: one panel, metric vs inference ms. A lower-is-better metric
-    (the planner's L2) keeps its axis; the front is of the better direction.
-
-    Returns:
-        The PNG path, or None when the stage has no budget points.
-    """
-    mine = [r for r in aggregate(rows) if r["stage"] == stage and not r.get("phase")]
-    if not mine:
-        return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    spec = STAGE_METRICS[stage]
-    _, higher, m_text = spec["metric"]
-    scale = 100 if "%" in m_text else 1
-    panels = (("infer_ms", "inference (ms / sample, batch 1)"),)
-    if stage != "planner":
-        panels = (("train_s", "training time (s)"), *panels)
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.9 * len(panels), 3.9), squeeze=False)
-    values = [scale * float(r["metric"]) for r in mine]
-    errs = [scale * _num(r["spread"]) / 2 for r in mine]
-    errs = [0.0 if math.isnan(e) else e for e in errs]
-    for ax, (key, xlabel) in zip(axes[0], panels, strict=True):
-        costs = [float(r[key]) for r in mine]
-        front = pareto_front(costs, values if higher else [-v for v in values])
-        ax.errorbar(costs, values, yerr=errs, fmt="o", color="tab:gray", ms=4, capsize=2,
-                    zorder=2)  # fmt: skip
-        ax.plot([costs[i] for i in front], [values[i] for i in front], "-", color="tab:red",
-                lw=1.5, zorder=3, label="Pareto front")  # fmt: skip
-        for i, r in enumerate(mine):
-            if r["knob"] == DEFAULT:
-                ax.scatter([costs[i]], [values[i]], marker="*", s=160, color="tab:blue",
-                           zorder=4, label="default")  # fmt: skip
-            ax.annotate(  # labels alternate above / below so that near points stay legible
-                _label(r), (costs[i], values[i]), fontsize=7, xytext=(4, 3 if i % 2 else -10),
-                textcoords="offset points", fontweight="bold" if r["knob"] == DEFAULT else "normal",
-            )  # fmt: skip
-        ax.set_xlabel(xlabel)
-        ax.set_ylabel(m_text + ("" if higher else ", lower is better"))
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="best")
-    steps = sorted({str(r["max_steps"]) for r in mine})
-    seeds = sorted({str(r["seeds"]) for r in mine})
-    what = (
-        "no training" if stage == "planner" else f"same budget per point ({'/'.join(steps)} steps)"
-    )
-    claim = "" if all(r.get("claimed", True) for r in mine) else "; ranking not claimed"
-    fig.suptitle(f"{stage}: accuracy vs cost, {what}, {'/'.join(seeds)} seed(s){claim}",
-                 fontsize=10)  # fmt: skip
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
-
-
-def write_outputs(
-    results: Sequence[Mapping[str, Any]], out: Path, title: str = "", notes: Sequence[str] = ()
-) -> dict[str, Path]:
-    """``results.csv``, ``results.md`` and one ``pareto_<stage>.png`` per stage under ``out``."""
-    rows = result_rows(results)
-    out = Path(out)
-    paths = {"csv": write_csv(rows, out / "results.csv")}
-    paths["md"] = write_markdown(rows, out / "results.md", title, notes)
-    for stage in dict.fromkeys(r["stage"] for r in rows):
-        png = plot_pareto(rows, stage, out / f"pareto_{stage}.png")
-        if png is not None:
-            paths[f"pareto_{stage}"] = png
-    return paths

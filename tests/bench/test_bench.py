@@ -19,15 +19,9 @@ from omegaconf import OmegaConf
 
 from data_converters import ConvertOptions, create_data
 from renderworld.bench.knobs import KNOBS, format_value
-from renderworld.bench.main import bench_points, resolve_jobs
-from renderworld.bench.report import (
-    pareto_front,
-    ranking_check,
-    ranking_text,
-    result_rows,
-    stage_table,
-    write_outputs,
-)
+from renderworld.bench.main import bench_points, resolve_jobs, write_outputs
+from renderworld.bench.plots import pareto_front
+from renderworld.bench.report import ranking_check, ranking_text, result_rows, stage_table
 from renderworld.bench.run import run_sweep
 from renderworld.bench.sweep import (
     RANKING,
