@@ -222,36 +222,46 @@ def ranking_check(rows: Sequence[Mapping[str, Any]], stage: str) -> dict[str, An
     ("no difference"), so its order may change without contradicting the budget's ranking.
 
     Returns:
-        ``{"budget_order": [labels], "full_order": [labels], "full_steps": int,
-        "contradictions": [(a, b)], "holds": bool}`` (orders best first).
+        ``{"budget_order": [str], "full_order": [str], "full_steps": int,
+        "contradictions": [(a, b)], "ties": [(a, b)], "holds": bool}``: orders best first,
+        each entry the point's label and its mean metric (e.g. ``"default 36.09"``); ``ties``
+        are the pairs within the seeds' spread at the budget.
     """
     aggs = [r for r in aggregate(rows) if r["stage"] == stage]
     full = [r for r in aggs if r.get("phase") == RANKING]
     if not full:
         return None
-    at_budget = {(r["knob"], str(r["value"])): r for r in aggs if not r.get("phase")}
-    higher = STAGE_METRICS[stage]["metric"][1]
-    pairs = [(at_budget.get((r["knob"], str(r["value"]))), r) for r in full]
+
+    def key(r):  # the default's value lists the composed knobs, the step count among them
+        return r["knob"], "" if r["knob"] == DEFAULT else str(r["value"])
+
+    at_budget = {key(r): r for r in aggs if not r.get("phase")}
+    _, higher, m_text = STAGE_METRICS[stage]["metric"]
+    scale = 100 if "%" in m_text else 1
+    pairs = [(at_budget.get(key(r)), r) for r in full]
     pairs = [(b, f) for b, f in pairs if b is not None]
 
     def order(items):
         ranked = sorted(items, key=lambda r: r["metric"], reverse=higher)
-        return [point_label(r) for r in ranked]
+        return [f"{point_label(r)} {scale * r['metric']:.2f}" for r in ranked]
 
-    contradictions = []
+    contradictions, ties = [], []
     for i, (b1, f1) in enumerate(pairs):
         for b2, f2 in pairs[i + 1 :]:
             d_budget = b1["metric"] - b2["metric"]
             d_full = f1["metric"] - f2["metric"]
             spread = max(as_float(b1["spread"]), as_float(b2["spread"]))
             tie = not math.isnan(spread) and abs(d_budget) <= spread
-            if not tie and d_budget * d_full < 0:
+            if tie:
+                ties.append((point_label(b1), point_label(b2)))
+            elif d_budget * d_full < 0:
                 contradictions.append((point_label(b1), point_label(b2)))
     return {
         "budget_order": order([b for b, _ in pairs]),
         "full_order": order([f for _, f in pairs]),
         "full_steps": int(as_float(full[0]["max_steps"])),
         "contradictions": contradictions,
+        "ties": ties,
         "holds": not contradictions,
     }
 
@@ -266,11 +276,13 @@ def ranking_text(rows: Sequence[Mapping[str, Any]], stage: str) -> str:
     )
     verdict = "**holds**" if chk["holds"] else "**does not hold**"
     bad = "; ".join(f"{a} vs {b}" for a, b in chk["contradictions"])
+    ties = "; ".join(f"{a} vs {b}" for a, b in chk["ties"])
     return (
         f"Ranking check ({stage}): best first at the budget ({'/'.join(steps)} steps): "
         f"{' > '.join(chk['budget_order'])}; at {chk['full_steps']} steps: "
         f"{' > '.join(chk['full_order'])}. The budget's ranking {verdict}"
         + (f" (order reversed beyond the seeds' spread: {bad})." if bad else ".")
+        + (f" No difference at the budget (within the seeds' spread): {ties}." if ties else "")
     )
 
 

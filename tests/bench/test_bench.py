@@ -487,18 +487,40 @@ def test_table_shows_seed_means_and_spread_and_calls_small_deltas_no_difference(
 
 def test_ranking_check_compares_orders_and_ignores_ties_within_the_spread():
     budget = _synthetic()[:3] + _synthetic()[4:7]  # default 41, K=64 32, K=1024 40 (tie w/ def.)
+    # The default's composed knob values name the step count where steps is a knob (the world
+    # model's): they differ between the two budgets and must still pair.
     full = [
-        {**r, "phase": RANKING, "max_steps": 700, "metrics": {"val/miou": m, "val/iou": 0.9}}
+        {**r, "phase": RANKING, "max_steps": 700, "metrics": {"val/miou": m, "val/iou": 0.9},
+         "knob_values": {"codebook_size": "256", "steps": "700"}}
         for r, m in zip(budget, (0.55, 0.50, 0.60, 0.55, 0.50, 0.60), strict=True)
-    ]  # rows K=64, default, K=1024 per seed; at 700 steps: K=1024 60 > K=64 55 > default 50
+    ]  # fmt: skip
+    # rows K=64, default, K=1024 per seed; at 700 steps: K=1024 60 > K=64 55 > default 50
     rows = result_rows(budget + full)
     chk = ranking_check(rows, "tokenizer")
-    assert chk["budget_order"] == ["default", "codebook_size=1024", "codebook_size=64"]
-    assert chk["full_order"] == ["codebook_size=1024", "codebook_size=64", "default"]
+    assert chk["budget_order"] == [
+        "default 41.00",
+        "codebook_size=1024 40.00",
+        "codebook_size=64 32.00",
+    ]
+    assert chk["full_order"] == [
+        "codebook_size=1024 60.00",
+        "codebook_size=64 55.00",
+        "default 50.00",
+    ]
     # default > K=64 at the budget (beyond the spread) is reversed at 700 steps: contradiction;
     # default vs K=1024 was a tie at the budget: not one.
     assert chk["contradictions"] == [("codebook_size=64", "default")] and not chk["holds"]
-    assert "does not hold" in ranking_text(rows, "tokenizer")
+    # K=1024's seeds span 10 points: within it of both others at the budget.
+    assert chk["ties"] == [
+        ("codebook_size=64", "codebook_size=1024"),
+        ("default", "codebook_size=1024"),
+    ]
+    text = ranking_text(rows, "tokenizer")
+    assert "does not hold" in text
+    assert (
+        "No difference at the budget (within the seeds' spread): codebook_size=64 vs "
+        "codebook_size=1024; default vs codebook_size=1024." in text
+    )
     same = [
         {**r, "metrics": {"val/miou": m, "val/iou": 0.9}}
         for r, m in zip(full, (0.50, 0.60, 0.58, 0.50, 0.60, 0.58), strict=True)
