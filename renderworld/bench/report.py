@@ -157,11 +157,12 @@ def _delta(row: Mapping[str, Any], ref: Mapping[str, Any] | None, pct: bool) -> 
     return text
 
 
-def stage_table(rows: Sequence[Mapping[str, Any]], stage: str) -> str:
-    """Markdown table of one stage's budget points (means over seeds); Δ and ratios are against
-    its default point; a Δ within the seeds' spread reads "no difference"."""
+def stage_table(rows: Sequence[Mapping[str, Any]], stage: str, phase: str = "") -> str:
+    """Markdown table of one stage's budget points (``phase=""``) or ranking points
+    (``phase="ranking"``), means over seeds; Δ and ratios are against the default point of the
+    same phase; a Δ within the seeds' spread reads "no difference"."""
     spec = STAGE_METRICS[stage]
-    mine = [r for r in aggregate(rows) if r["stage"] == stage and not r.get("phase")]
+    mine = [r for r in aggregate(rows) if r["stage"] == stage and r.get("phase", "") == phase]
     if not mine:
         return ""
     mine.sort(key=lambda r: r["knob"] != DEFAULT)  # stable: the default point first
@@ -186,8 +187,9 @@ def stage_table(rows: Sequence[Mapping[str, Any]], stage: str) -> str:
     cols = head.count("|") - 1
     jobs = sorted({int(as_float(r.get("jobs", 1))) for r in rows if r["stage"] == stage})
     at_once = "/".join(map(str, jobs)) + " point(s) at a time"
+    what = f"**{stage}**" + (" ranking points (the main job's step count)" if phase else "")
     lines = [
-        f"**{stage}** — budget per point: {budget}; grid of the default point: "
+        f"{what} — budget per point: {budget}; grid of the default point: "
         f"{ref['grid'] if ref else '?'}; seeds per point: {'/'.join(map(str, seeds))} (mean; "
         f'± half the range; a Δ within the larger range of the two points reads "no '
         f'difference"). Measured {at_once}. Inference sample: {spec["sample"]}.'
@@ -295,7 +297,8 @@ def write_markdown(
     stages = list(dict.fromkeys(r["stage"] for r in rows))
     parts = [f"# {title}"] if title else []
     for s in stages:
-        parts += [p for p in (stage_table(rows, s), ranking_text(rows, s)) if p]
+        tables = (stage_table(rows, s), stage_table(rows, s, RANKING), ranking_text(rows, s))
+        parts += [p for p in tables if p]
     parts += list(notes)
     path.write_text("\n\n".join(parts) + "\n")
     return path

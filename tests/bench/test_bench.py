@@ -510,6 +510,11 @@ def test_ranking_check_compares_orders_and_ignores_ties_within_the_spread():
     # default > K=64 at the budget (beyond the spread) is reversed at 700 steps: contradiction;
     # default vs K=1024 was a tie at the budget: not one.
     assert chk["contradictions"] == [("codebook_size=64", "default")] and not chk["holds"]
+    # The ranking points get their own table: means and spreads at 700 steps, Δ vs that default.
+    table = stage_table(rows, "tokenizer", RANKING)
+    assert "**tokenizer** ranking points (the main job's step count)" in table
+    assert "700 steps" in table and "| codebook_size=1024 | 60.00 | 0.00 | +10.00 |" in table
+    assert "| 41.00 |" not in table  # no budget point in it
     # K=1024's seeds span 10 points: within it of both others at the budget.
     assert chk["ties"] == [
         ("codebook_size=64", "codebook_size=1024"),
