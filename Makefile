@@ -42,5 +42,10 @@ lint: $(STAMP)
 demo: $(STAMP)
 	$(PY) tools/run_pipeline.py
 
+# The accuracy-vs-time sweep after `make demo` (PRESET=quick|standard|full).
+PRESET ?= quick
+bench: $(STAMP)
+	$(PY) tools/bench.py bench=$(PRESET)
+
 clean:
 	rm -rf $(VENV) .cache .pytest_cache
