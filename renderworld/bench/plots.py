@@ -83,8 +83,8 @@ def plot_pareto(rows: Sequence[Mapping[str, Any]], stage: str, path: Path) -> Pa
         front = pareto_front(costs, values if higher else [-v for v in values])
         ax.errorbar(costs, values, yerr=errs, fmt="o", color="tab:gray", ms=4, capsize=2,
                     zorder=2)  # fmt: skip
-        ax.plot([costs[i] for i in front], [values[i] for i in front], "-", color="tab:red",
-                lw=1.5, zorder=3, label="Pareto front")  # fmt: skip
+        ax.plot([costs[i] for i in front], [values[i] for i in front], "-o", color="tab:red",
+                mfc="none", ms=9, lw=1.5, zorder=3, label="Pareto front")  # fmt: skip
         # Labels alternate above / below in the order of cost, so that near points stay legible.
         above = {
             i: k % 2 == 0 for k, i in enumerate(sorted(range(len(mine)), key=costs.__getitem__))
