@@ -75,9 +75,10 @@ def point_seconds(point: BenchPoint) -> float:
 
 
 def estimate(points: Sequence[BenchPoint], out: Path, infer_frames: int) -> dict[str, float]:
-    """``{"total_s", "left_s", "done"}``: the sweep's estimated seconds, those still to run, and
-    how many points ``out`` already holds (their recorded time counts)."""
-    total = left = 0.0
+    """``{"total_s", "left_s", "left_alone_s", "done"}``: the sweep's estimated seconds, those
+    still to run (``left_alone_s`` of them planner points, which run one at a time), and how many
+    points ``out`` already holds (their recorded time counts)."""
+    total = left = alone = 0.0
     done = 0
     for p in points:
         stored = Path(out) / "points" / p.point_id / "result.json"
@@ -90,7 +91,8 @@ def estimate(points: Sequence[BenchPoint], out: Path, infer_frames: int) -> dict
         s = point_seconds(p)
         total += s
         left += s
-    return {"total_s": total, "left_s": left, "done": float(done)}
+        alone += s if p.stage == "planner" else 0.0
+    return {"total_s": total, "left_s": left, "left_alone_s": alone, "done": float(done)}
 
 
 def estimate_text(points: Sequence[BenchPoint], out: Path, infer_frames: int, jobs: int = 1) -> str:
@@ -105,8 +107,7 @@ def estimate_text(points: Sequence[BenchPoint], out: Path, infer_frames: int, jo
     lo, hi = LOADED_WALL_PER_CPU
     wall = ""
     if jobs > 1:
-        alone = sum(point_seconds(p) for p in points if p.stage == "planner")
-        left = max(est["left_s"] - alone, 0.0) / jobs + min(alone, est["left_s"])
+        left = (est["left_s"] - est["left_alone_s"]) / jobs + est["left_alone_s"]
         wall = f"; {jobs} points at a time: about {left / 60:.0f} min of wall time left"
     return (
         f"estimate: {est['total_s'] / 60:.0f} min of points in all ({per} min), "

@@ -110,12 +110,7 @@ def plot_pareto(rows: Sequence[Mapping[str, Any]], stage: str, path: Path) -> Pa
     claim = "" if all(r.get("claimed", True) for r in mine) else "; ranking not claimed"
     fig.suptitle(f"{stage}: accuracy vs cost, {what}, {'/'.join(seeds)} seed(s){claim}",
                  fontsize=10)  # fmt: skip
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_planner(rows: Sequence[Mapping[str, Any]], path: Path) -> Path:
@@ -152,6 +147,13 @@ def plot_planner(rows: Sequence[Mapping[str, Any]], path: Path) -> Path:
     ax.set_xlabel("latency per plan, batch 1 (ms, log scale)")
     ax.grid(alpha=0.3, axis="x")
     fig.suptitle("planner: latency of the main job's planner, one option changed", fontsize=10)
+    return _save(fig, path)
+
+
+def _save(fig: Any, path: Path) -> Path:
+    """Lay out, write ``fig`` as a 100-dpi PNG at ``path`` (folders made) and close it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -645,3 +645,15 @@ def test_estimate_charges_steps_the_library_and_halves_the_wall_time_with_two_jo
     run_sweep(pts[:1], tmp_path, infer_frames=3, runner=_fake_runner([]), echo=lambda s: None)
     est = estimate(pts, tmp_path, 3)
     assert est["done"] == 1 and est["left_s"] == pytest.approx(left - point_seconds(pts[0]))
+    # Planner points run alone: they count in full, and only while they are still to run.
+    pp = expand_points(
+        _preset(planner={"knobs": {"forecast": [False]}}),
+        upstream={"planner": ["tokenizer_ckpt=/t", "world_model_ckpt=/w"]},
+    )
+    both = pts + pp
+    est = estimate(both, tmp_path, 3)
+    assert est["left_alone_s"] == pytest.approx(sum(point_seconds(p) for p in pp))
+    wall = (est["left_s"] - est["left_alone_s"]) / 2 + est["left_alone_s"]
+    assert f"about {wall / 60:.0f} min of wall time left" in estimate_text(both, tmp_path, 3, 2)
+    run_sweep(pp, tmp_path, infer_frames=3, runner=_fake_runner([]), echo=lambda s: None)
+    assert estimate(both, tmp_path, 3)["left_alone_s"] == 0.0
