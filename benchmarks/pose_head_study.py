@@ -9,16 +9,19 @@ and training variants can be compared over seeds before a full world-model train
 
 Variants (``--variant``, comma-separated): ``pool8`` (8 x 8 BEV pooling), ``wide`` (a wider BEV
 CNN), ``nobev`` (no bird's-eye view), ``drop`` (dropout 0.2 in the MLP), ``motion`` (three more BEV
-channels: where the object-CV movers will be at +1 / +2 / +3 s). ``--tta`` averages each prediction
-with its mirrored scene's; ``--brake`` stops the plan ``--gap`` m short of the first step where the
-ego box (inflated by ``--margin`` m) meets a mover moved at its history velocity.
+channels: where the object-CV movers will be at +1 / +2 / +3 s), ``kin`` (the head also reads
+:func:`~renderworld.world.pose.kinematic_features`; ``stage.pose_kinematics``). ``--tta``
+averages each prediction with its mirrored scene's; ``--brake`` stops the plan ``--gap`` m short
+of the first step where the ego box (inflated by ``--margin`` m) meets a mover moved at its
+history velocity.
 
 Usage::
 
     python benchmarks/pose_head_study.py --data-root data/sim_mini \\
         --tokenizer outputs/demo/tokenizer/checkpoints/last.pt --library data/sim_scenarios \\
         --val data/sim_mini data/sim_mini_s77 data/sim_interactions@v1.0-interactions \\
-        [--steps 800] [--seed 0] [--variant motion] [--tta] [--brake --margin 0.5 --gap 3]
+        [--steps 800] [--seed 0] [--lr 1e-3] [--variant kin,motion] [--tta]
+        [--brake --margin 0.5 --gap 3]
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ from renderworld.training.stages.world_model.pose_warp import (  # noqa: E402
 )
 from renderworld.world.baselines import constant_turn_rate_poses  # noqa: E402
 from renderworld.world.movers import movable_mask, object_cv_frames  # noqa: E402
-from renderworld.world.pose import BEV_GROUPS, bev_channels, pose_loss  # noqa: E402
+from renderworld.world.pose import BEV_GROUPS, PoseHead, bev_channels, pose_loss  # noqa: E402
 
 
 def run_config(data_root: str, tokenizer: str, library: str | None):
@@ -206,6 +209,8 @@ def main() -> None:
     stage = get_stage(cfg.stage.name, cfg.stage._target_module_)(cfg)
     train_set, _ = stage.build_datasets(cfg)
     head = stage.build_model(cfg).pose
+    if "kin" in variants:
+        head = PoseHead(head.history, head.steps, anchors=head.anchors, kinematics=True)
     apply_variants(head, variants)
     if "nobev" in variants:
         head.bev = _NoBev(head.bev[8].out_features)

@@ -10,15 +10,16 @@ Format (``schema_version`` 2), a plain dict saved with ``torch.save`` and read w
       "world_model": {"kind": "tokens" | "pose_warp",
                       "config": dict (WorldModelConfig.to_dict()), "state_dict": {...},
                       "options": {} (tokens) | {"anchors": str, "movers": str,
-                                  "grid": {"name": str, "range_min": [3], "range_max": [3],
-                                  "shape": [3]}}},
+                                  "kinematics": bool, "grid": {"name": str,
+                                  "range_min": [3], "range_max": [3], "shape": [3]}}},
     }
 
 ``kind`` ``"tokens"`` is :class:`renderworld.world.WorldModel`, ``"pose_warp"``
 :class:`renderworld.world.pose.PoseWarpWorldModel` (its pose head's anchors, how its forecast
 moves other road users and the occupancy grid its warps use are the options). Bundles of
 ``schema_version`` 1 (token world models only, no ``kind`` / ``options``) still load; pose-warp
-options without ``movers`` (bundles written before it existed) load as ``"static"``.
+options without ``movers`` or ``kinematics`` (bundles written before they existed) load as
+``"static"`` and false.
 
 The tokenizer is rebuilt through a registry (``register_tokenizer``), never by importing a
 class named in the file. Writes are atomic (temp file in the same folder, fsync, rename);
@@ -177,7 +178,11 @@ def _world_model_options(world_model, tokenizer, grid: GridSpec | None) -> tuple
             grid = default_grid(shape)
         if not isinstance(grid, GridSpec):
             raise TypeError(f"grid: expected a GridSpec or None, got {type(grid).__name__}")
-        options = {"anchors": world_model.pose.anchors, "movers": world_model.movers}
+        options = {
+            "anchors": world_model.pose.anchors,
+            "movers": world_model.movers,
+            "kinematics": world_model.pose.kinematics,
+        }
         return "pose_warp", {**options, "grid": _grid_dict(grid)}
     if isinstance(world_model, WorldModel):
         return "tokens", {}
@@ -318,8 +323,9 @@ def load_planner(
         )
     where = f"ckpt_path {path}: world_model options"
     if wm_kind == "pose_warp":
-        options = {"movers": "static", **options} if isinstance(options, dict) else options
-        _require_keys(options, {"anchors", "movers", "grid"}, where)
+        if isinstance(options, dict):  # bundles written before an option existed
+            options = {"movers": "static", "kinematics": False, **options}
+        _require_keys(options, {"anchors", "movers", "kinematics", "grid"}, where)
         if options["anchors"] not in ANCHORS:
             raise ValueError(
                 f"{where}: anchors: expected one of {ANCHORS}, got {options['anchors']!r}"
@@ -327,6 +333,10 @@ def load_planner(
         if options["movers"] not in MOVERS:
             raise ValueError(
                 f"{where}: movers: expected one of {MOVERS}, got {options['movers']!r}"
+            )
+        if not isinstance(options["kinematics"], bool):
+            raise ValueError(
+                f"{where}: kinematics: expected true or false, got {options['kinematics']!r}"
             )
         grid = _grid_of(options["grid"], f"{where}: grid")
     else:
@@ -356,7 +366,10 @@ def load_planner(
         config = WorldModelConfig.from_dict(wm["config"])
         if wm_kind == "pose_warp":
             world_model = PoseWarpWorldModel(
-                config, anchors=options["anchors"], movers=options["movers"]
+                config,
+                anchors=options["anchors"],
+                movers=options["movers"],
+                kinematics=options["kinematics"],
             )
         else:
             world_model = WorldModel(config)

@@ -39,7 +39,7 @@ from renderworld.training.distributed import (
 )
 from renderworld.training.ema import WeightEMA
 from renderworld.training.loggers import MetricLogger, MetricWindow
-from renderworld.training.optim import build_optimizer, build_scheduler
+from renderworld.training.optim import build_optimizer, build_scheduler, default_param_groups
 from renderworld.training.registry import Stage
 from renderworld.training.schedule import write_schedule
 from renderworld.training.seed import get_rng_state, seed_everything, set_rng_state
@@ -100,7 +100,10 @@ class Trainer:
                 device_ids=[info.device.index] if info.device.type == "cuda" else None,
                 find_unused_parameters=tcfg.find_unused_parameters,
             )
-        self.optimizer = build_optimizer(self.model, ocfg, stage.param_groups(self.model))
+        groups = stage.param_groups(self.model)
+        if groups is None:
+            groups = default_param_groups(self.model, ocfg, stage.lr_scales())
+        self.optimizer = build_optimizer(self.model, ocfg, groups)
         # fp16 overflows where bf16 does not: its loss is scaled, and a step whose gradients
         # overflow is skipped (the scale halves) instead of raising below.
         self.scaler = torch.amp.GradScaler(info.device.type, enabled=self.precision == "fp16")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 import torch
@@ -14,21 +14,50 @@ from renderworld.training.config import OptimizerConfig, SchedulerConfig
 __all__ = ["build_optimizer", "build_scheduler", "lr_multiplier", "default_param_groups"]
 
 
-def default_param_groups(model: nn.Module, cfg: OptimizerConfig) -> list[dict[str, Any]]:
+def default_param_groups(
+    model: nn.Module, cfg: OptimizerConfig, lr_scales: Mapping[str, float] | None = None
+) -> list[dict[str, Any]]:
     """Two groups: weight decay on >= 2-D parameters, none on biases and norm scales.
 
     With ``cfg.decay_1d_params`` every trainable parameter is decayed.
+
+    Args:
+        model: the model.
+        cfg: the optimizer settings.
+        lr_scales: parameter-name prefix -> factor on ``cfg.lr`` (e.g. ``{"pose.": 4.0}``): the
+            parameters under each prefix get their own groups at ``cfg.lr * factor`` (the
+            schedule multiplies every group's rate alike). None or empty: one rate.
+
+    Raises:
+        ValueError: no trainable parameter, a factor <= 0, or a prefix naming none.
     """
     params = [(n, p) for n, p in model.named_parameters() if p.requires_grad]
     if not params:
         raise ValueError(f"model: {type(model).__name__} has no trainable parameters")
-    if cfg.decay_1d_params:
-        return [{"params": [p for _, p in params], "weight_decay": cfg.weight_decay}]
-    decay = [p for _, p in params if p.ndim >= 2]
-    no_decay = [p for _, p in params if p.ndim < 2]
-    groups = [{"params": decay, "weight_decay": cfg.weight_decay}]
-    if no_decay:
-        groups.append({"params": no_decay, "weight_decay": 0.0})
+    scales = dict(lr_scales or {})
+    for prefix, factor in scales.items():
+        if not factor > 0:
+            raise ValueError(f"lr_scales[{prefix!r}]: expected a factor > 0, got {factor!r}")
+        if not any(n.startswith(prefix) for n, _ in params):
+            raise ValueError(f"lr_scales: prefix {prefix!r} names no trainable parameter")
+
+    def scale_of(name: str) -> float:
+        return next((f for pre, f in scales.items() if name.startswith(pre)), 1.0)
+
+    groups = []
+    for factor in sorted({scale_of(n) for n, _ in params}):
+        mine = [(n, p) for n, p in params if scale_of(n) == factor]
+        extra = {} if factor == 1.0 else {"lr": cfg.lr * factor}
+        if cfg.decay_1d_params:
+            groups.append({"params": [p for _, p in mine], "weight_decay": cfg.weight_decay})
+            groups[-1].update(extra)
+            continue
+        decay = [p for _, p in mine if p.ndim >= 2]
+        no_decay = [p for _, p in mine if p.ndim < 2]
+        if decay:
+            groups.append({"params": decay, "weight_decay": cfg.weight_decay, **extra})
+        if no_decay:
+            groups.append({"params": no_decay, "weight_decay": 0.0, **extra})
     return groups
 
 

@@ -117,6 +117,11 @@ class Stage(ABC):
         """Optimizer parameter groups (None: the loop's decay / no-decay split)."""
         return None
 
+    def lr_scales(self) -> Mapping[str, float]:
+        """Parameter-name prefix -> factor on the learning rate, for the loop's default groups
+        (``renderworld.training.optim.default_param_groups``); empty: one rate."""
+        return {}
+
     def on_train_start(self, model: nn.Module, run_dir: str) -> None:  # noqa: B027 - optional
         """Called once before the first step (also after a resume)."""
 

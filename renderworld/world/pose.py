@@ -32,6 +32,7 @@ __all__ = [
     "align_history",
     "bev_channels",
     "invert_poses",
+    "kinematic_features",
     "pose_loss",
 ]
 
@@ -111,6 +112,29 @@ def align_history(
     return out.reshape(occupancy.shape)
 
 
+def kinematic_features(history_poses: torch.Tensor) -> torch.Tensor:
+    """Per-step motion of the history on a log-like scale, for :class:`PoseHead`.
+
+    ``asinh(v / s) / 3`` keeps the sign, is linear near zero and logarithmic far from it, so a
+    0.3-degree heading change (a turn starting) and a 14-degree one (a turn going on) are both
+    clearly apart from zero and from each other.
+
+    Args:
+        history_poses: [B, H, 3] (x, y, yaw) of frames t-H+1..t in the current ego frame.
+
+    Returns:
+        [B, 4 H - 6] float32: the H-1 step lengths (scale 1 m), their H-2 changes (scale
+        1 cm), the H-1 heading changes (scale 0.1 degree) and their H-2 changes (scale 0.1
+        degree).
+    """
+    hp = history_poses.float()
+    step = torch.diff(hp[..., :2], dim=1).norm(dim=-1)  # metres per history step
+    dyaw = torch.rad2deg(torch.diff(hp[..., 2], dim=1))
+    dyaw = torch.remainder(dyaw + 180.0, 360.0) - 180.0
+    parts = [step / 1.0, torch.diff(step, dim=1) / 0.01, dyaw / 0.1, torch.diff(dyaw, dim=1) / 0.1]
+    return torch.asinh(torch.cat(parts, dim=1)) / 3.0
+
+
 #: Extrapolations a :class:`PoseHead` predicts residuals on.
 ANCHORS = ("ctr", "ctr_cv")
 
@@ -130,6 +154,11 @@ class PoseHead(nn.Module):
         steps: S future frames.
         bev_in: channels of the bird's-eye view (``len(BEV_GROUPS)``).
         hidden: width of the MLP.
+        anchors: the extrapolations it predicts residuals on (:data:`ANCHORS`).
+        kinematics: also read :func:`kinematic_features` of the history (step lengths, their
+            changes and the heading changes on a log-like scale), so that the small differences
+            that say when a turn starts or ends (a 0.3-degree heading change, a 0.5 m/s speed
+            drop) are not lost among inputs of order one.
     """
 
     #: Scale of the raw outputs: metres for x / y, radians for yaw.
@@ -142,6 +171,7 @@ class PoseHead(nn.Module):
         bev_in: int = len(BEV_GROUPS),
         hidden: int = 128,
         anchors: str = "ctr",
+        kinematics: bool = False,
     ):
         super().__init__()
         if history < 2 or steps < 1:
@@ -149,6 +179,7 @@ class PoseHead(nn.Module):
         if anchors not in ANCHORS:
             raise ValueError(f"anchors: expected one of {ANCHORS}, got {anchors!r}")
         self.history, self.steps, self.anchors = history, steps, anchors
+        self.kinematics = bool(kinematics)
         n_out = 3 + (1 if anchors == "ctr_cv" else 0)  # (dx, dy, dyaw) [+ CTR-vs-CV logit]
         self.bev = nn.Sequential(
             nn.Conv2d(bev_in, 16, 3, stride=2, padding=1), nn.GELU(),
@@ -157,6 +188,7 @@ class PoseHead(nn.Module):
             nn.AdaptiveAvgPool2d(4), nn.Flatten(), nn.Linear(32 * 16, hidden), nn.GELU(),
         )  # fmt: skip
         n_in = 4 * history + len(COMMANDS) + hidden
+        n_in += kinematic_features(torch.zeros(1, history, 3)).shape[1] if self.kinematics else 0
         self.mlp = nn.Sequential(
             nn.Linear(n_in, hidden), nn.GELU(), nn.Linear(hidden, hidden), nn.GELU(),
             nn.Linear(hidden, len(COMMANDS) * steps * n_out),
@@ -192,7 +224,10 @@ class PoseHead(nn.Module):
             [hp[..., :2] / 10.0, torch.sin(hp[..., 2:]), torch.cos(hp[..., 2:])], dim=-1
         ).flatten(1)
         onehot = nn.functional.one_hot(command, len(COMMANDS)).float()
-        x = torch.cat([feats, onehot, self.bev(bev.float())], dim=1)
+        parts = [feats, onehot, self.bev(bev.float())]
+        if self.kinematics:
+            parts.append(kinematic_features(hp))
+        x = torch.cat(parts, dim=1)
         out = self.mlp(x).view(b, len(COMMANDS), self.steps, -1)
         raw = out[..., :3] * self.scale
         hist = history_poses.detach().double()
@@ -262,6 +297,7 @@ class PoseWarpWorldModel(nn.Module):
         anchors: the pose head's extrapolations (:data:`ANCHORS`).
         movers: how the forecast moves other road users (``"static"`` or ``"object_cv"``,
             :mod:`renderworld.world.forecast`); no weights depend on it.
+        kinematics: the pose head also reads :func:`kinematic_features` of the history.
     """
 
     def __init__(
@@ -270,6 +306,7 @@ class PoseWarpWorldModel(nn.Module):
         copy_bonus: float = 2.0,
         anchors: str = "ctr",
         movers: str = "static",
+        kinematics: bool = False,
     ):
         super().__init__()
         if not isinstance(config, WorldModelConfig):
@@ -280,7 +317,9 @@ class PoseWarpWorldModel(nn.Module):
         #: How the forecast moves other road users (:data:`renderworld.world.movers.MOVERS`).
         self.movers = movers
         self.net = WorldModel(config)
-        self.pose = PoseHead(config.history_frames, config.future_frames, anchors=anchors)
+        self.pose = PoseHead(
+            config.history_frames, config.future_frames, anchors=anchors, kinematics=kinematics
+        )
         self.copy_bonus = nn.Parameter(torch.full((config.num_codebooks,), float(copy_bonus)))
 
     def predict_poses(

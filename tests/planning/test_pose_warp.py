@@ -329,6 +329,29 @@ def test_bundles_keep_how_the_forecast_moves_others(tmp_path, movers):
     assert load_planner(old).world_model.movers == "static"
 
 
+def test_bundles_keep_a_pose_head_that_reads_kinematics(tmp_path):
+    torch.manual_seed(3)
+    tok, base = make_model(seed=3)
+    wm = PoseWarpWorldModel(base.config, anchors="ctr_cv", kinematics=True)
+    with torch.no_grad():
+        for p in wm.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    path = save_planner_bundle(tmp_path / "k.pt", tok, wm)
+    assert torch.load(path, weights_only=True)["world_model"]["options"]["kinematics"] is True
+    loaded = load_planner(path).world_model
+    assert loaded.pose.kinematics
+    req = request()
+    np.testing.assert_array_equal(
+        Planner(tok, wm).plan(req).trajectory, load_planner(path).plan(req).trajectory
+    )
+    # Written before the option existed (no "kinematics"): a head without them.
+    old = _tampered(tmp_path, lambda d: d["world_model"]["options"].pop("kinematics"))
+    assert load_planner(old).world_model.pose.kinematics is False
+    bad = _tampered(tmp_path, lambda d: d["world_model"]["options"].update(kinematics="yes"))
+    with pytest.raises(ValueError, match="kinematics: expected true or false"):
+        load_planner(bad)
+
+
 def test_schema_1_token_bundles_still_load(tmp_path):
     from tests.planning.test_api import make_planner as token_planner
     from tests.planning.test_api import make_request

@@ -39,6 +39,21 @@ def test_regression_learns_and_returns_metrics(tmp_path):
     assert {"train/samples_per_s", "train/lr", "train/grad_norm"} <= {r["key"] for r in rows}
 
 
+def test_a_stages_lr_scales_reach_the_optimizer(tmp_path, monkeypatch):
+    from tests.training.regression_stage import RegressionStage
+
+    def run(name: str, steps: int) -> dict[str, torch.Tensor]:
+        train(fit_cfg(tmp_path / name, f"trainer.max_steps={steps}"))
+        return params_of(tmp_path / name / "checkpoints" / "last.pt")
+
+    a, b = run("plain10", 10), run("plain20", 20)
+    assert (a["1.bias"] - b["1.bias"]).abs().max() > 1e-3  # the bias trains
+    monkeypatch.setattr(RegressionStage, "lr_scales", lambda self: {"1.bias": 1e-9})
+    c, d = run("scaled10", 10), run("scaled20", 20)
+    torch.testing.assert_close(c["1.bias"], d["1.bias"], atol=1e-6, rtol=0)  # at ~0 rate
+    assert (c["1.weight"] - d["1.weight"]).abs().max() > 1e-3  # the rest still trains
+
+
 def test_evaluate_reproduces_final_validation(tmp_path):
     metrics = train(fit_cfg(tmp_path / "run", "trainer.max_steps=30"))
     cfg = compose_cfg(

@@ -13,10 +13,15 @@ import pytest
 import torch
 
 from renderworld.training.api import hydra_argv
-from renderworld.training.config import SchedulerConfig
+from renderworld.training.config import OptimizerConfig, SchedulerConfig
 from renderworld.training.data import ShardedSampler
 from renderworld.training.loggers import MetricLogger, truncate_metrics_csv
-from renderworld.training.optim import lr_multiplier
+from renderworld.training.optim import (
+    build_optimizer,
+    build_scheduler,
+    default_param_groups,
+    lr_multiplier,
+)
 from renderworld.training.registry import Stage, get_stage, register_stage, sum_count
 from renderworld.training.seed import get_rng_state, rng_isolated, seed_everything, set_rng_state
 
@@ -66,6 +71,34 @@ def test_lr_schedule_warmup_then_cosine():
     assert all(a >= b for a, b in zip(f[4:], f[5:]))
     const = SchedulerConfig(name="constant", warmup_steps=0)
     assert lr_multiplier(100, const, 10) == 1.0
+
+
+def test_param_groups_scale_the_rate_of_named_parameters_and_the_schedule_keeps_it():
+    model = torch.nn.Sequential(torch.nn.Linear(2, 3), torch.nn.Linear(3, 1))
+    cfg = OptimizerConfig(lr=0.01, weight_decay=0.1)
+    plain = default_param_groups(model, cfg)
+    assert [(len(g["params"]), g["weight_decay"], "lr" in g) for g in plain] == [
+        (2, 0.1, False),
+        (2, 0.0, False),
+    ]
+    assert default_param_groups(model, cfg, {}) == plain
+    groups = default_param_groups(model, cfg, {"1.": 4.0})
+    by_lr = {}
+    for g in groups:
+        by_lr.setdefault(g.get("lr", cfg.lr), []).extend(g["params"])
+    assert {id(p) for p in by_lr[0.04]} == {id(p) for p in model[1].parameters()}
+    assert {id(p) for p in by_lr[0.01]} == {id(p) for p in model[0].parameters()}
+    opt = build_optimizer(model, cfg, groups)
+    sched = build_scheduler(opt, SchedulerConfig(name="cosine", warmup_steps=0), 10)
+    for _ in range(5):
+        opt.step()
+        sched.step()
+    rates = sorted({g["lr"] for g in opt.param_groups})
+    assert rates[1] == pytest.approx(4 * rates[0]) and rates[0] < 0.01  # decayed alike
+    with pytest.raises(ValueError, match=r"lr_scales: prefix 'head\.' names no trainable"):
+        default_param_groups(model, cfg, {"head.": 2.0})
+    with pytest.raises(ValueError, match=r"lr_scales\['1\.'\]: expected a factor > 0"):
+        default_param_groups(model, cfg, {"1.": 0.0})
 
 
 def test_rng_state_round_trip_and_isolation():

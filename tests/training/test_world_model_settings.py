@@ -28,6 +28,9 @@ BASE = ["stage=world_model", "stage.tokenizer_ckpt=tok.pt"]
         ("stage.pose_mirror=maybe", "stage.pose_mirror"),
         ("stage.pose_anchors=cv", "stage.pose_anchors"),
         ("stage.pose_step_weighting=log", "stage.pose_step_weighting"),
+        ("stage.pose_kinematics=2", "stage.pose_kinematics"),
+        ("stage.pose_lr_scale=0", "stage.pose_lr_scale"),
+        ("stage.pose_lr_scale=-1", "stage.pose_lr_scale"),
     ],
 )
 @pytest.mark.parametrize("forecaster", FORECASTER_KINDS)
@@ -64,3 +67,28 @@ def test_the_built_pose_model_uses_the_configured_anchors():
     tok = SimpleNamespace(codebook_sizes=(16,), latent_shape=(4, 4))
     model = build_world_model("pose_warp", world_model_config(cfg, tok), cfg)
     assert model.pose.anchors == "ctr_cv"
+
+
+def test_the_pose_head_gets_its_kinematics_and_its_own_learning_rate():
+    from types import SimpleNamespace
+
+    from renderworld.training.config import OptimizerConfig
+    from renderworld.training.optim import default_param_groups
+
+    over = ["stage.forecaster=pose_warp", "stage.pose_kinematics=true", "stage.pose_lr_scale=4"]
+    cfg = compose_cfg([*BASE, *over])
+    tok = SimpleNamespace(codebook_sizes=(16,), latent_shape=(4, 4))
+    model = build_world_model("pose_warp", world_model_config(cfg, tok), cfg)
+    assert model.pose.kinematics
+    stage = WorldModelStage(cfg)
+    assert stage.lr_scales() == {"pose.": 4.0}
+    groups = default_param_groups(model, OptimizerConfig(lr=1e-3), stage.lr_scales())
+    pose = {id(p) for p in model.pose.parameters()}
+    for g in groups:
+        mine = {id(p) in pose for p in g["params"]}
+        assert len(mine) == 1  # a group holds pose-head parameters only, or none
+        assert g.get("lr", 1e-3) == pytest.approx(4e-3 if mine == {True} else 1e-3)
+    assert sum(len(g["params"]) for g in groups) == len(list(model.parameters()))
+    # The token forecaster has no pose head: one rate.
+    cfg = compose_cfg([*BASE, "stage.forecaster=tokens", "stage.pose_lr_scale=4"])
+    assert WorldModelStage(cfg).lr_scales() == {}

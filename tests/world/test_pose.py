@@ -16,6 +16,7 @@ from renderworld.world.pose import (
     align_history,
     bev_channels,
     invert_poses,
+    kinematic_features,
     pose_loss,
 )
 
@@ -145,3 +146,49 @@ def test_pose_head_ctr_cv_anchors_blend_and_saturate():
     assert cv[1, :, 2].abs().max() == 0 and ctr[1, :, 2].abs().max() > 0  # they differ
     with pytest.raises(ValueError, match="anchors: expected one of"):
         PoseHead(history=3, steps=4, anchors="cv")
+
+
+def test_kinematic_features_resolve_small_changes_and_mirror():
+    h = 5
+    hist = torch.zeros(3, h, 3)
+    hist[:, :, 0] = torch.arange(-(h - 1), 1, dtype=torch.float32) * 3.0  # 3 m per step
+    hist[1, -1, 2] = math.radians(0.3)  # a turn starting: 0.3 deg in the last step
+    hist[2, :, 0] = torch.tensor([-10.5, -7.5, -4.75, -2.25, 0.0])  # braking: 3, 2.75, 2.5, 2.25
+    f = kinematic_features(hist)
+    assert f.shape == (3, 4 * h - 6) and torch.isfinite(f).all()
+    n = h - 1
+    steps, dsteps = f[:, :n], f[:, n : 2 * n - 1]
+    dyaw, ddyaw = f[:, 2 * n - 1 : 3 * n - 1], f[:, 3 * n - 1 :]
+    torch.testing.assert_close(steps[0], torch.full((n,), math.asinh(3.0) / 3))
+    assert dsteps[0].abs().max() == 0 and dyaw[0].abs().max() == 0  # steady, straight
+    # 0.3 deg is far from zero on this scale (asinh(3) / 3 = 0.6), unlike in radians (0.005).
+    assert dyaw[1, -1].item() == pytest.approx(math.asinh(3.0) / 3, rel=1e-4)
+    assert ddyaw[1, -1].item() > 0.5 and dyaw[1, :-1].abs().max() < 1e-6
+    # A 0.25 m per step speed drop (0.5 m/s per 0.5 s) is as clear, with its sign.
+    assert (dsteps[2] < -1.0).all()
+    # Mirroring the scene (y -> -y, yaw -> -yaw) flips the heading features only.
+    mirrored = hist.clone()
+    mirrored[..., 1:] = -mirrored[..., 1:]
+    g = kinematic_features(mirrored)
+    torch.testing.assert_close(g[:, : 2 * n - 1], f[:, : 2 * n - 1])
+    torch.testing.assert_close(g[:, 2 * n - 1 :], -f[:, 2 * n - 1 :])
+    # A heading change across +-180 deg is the short way round, not 360 deg.
+    wrap = torch.zeros(1, 2, 3)
+    wrap[0, 0, 2], wrap[0, 1, 2] = math.radians(179.0), math.radians(-179.0)
+    wrap[0, 1, 0] = 1.0
+    assert kinematic_features(wrap)[0, 1].item() == pytest.approx(math.asinh(20.0) / 3, rel=1e-4)
+
+
+def test_pose_head_with_kinematics_starts_at_its_anchor_and_reads_them():
+    head = PoseHead(history=3, steps=4, kinematics=True)
+    hist, cmd = _history(), torch.tensor([0, 2])
+    bev = torch.zeros(2, len(BEV_GROUPS), 8, 8)
+    poses, _ = head(hist, cmd, bev)
+    torch.testing.assert_close(poses, constant_turn_rate_poses(hist.double(), 4).float())
+    assert head.mlp[0].in_features == PoseHead(3, 4).mlp[0].in_features + (4 * 3 - 6)
+    with torch.no_grad():
+        head.mlp[-1].weight.normal_()
+    braking = hist.clone()
+    braking[:, 0, 0] = -8.5  # the same current frame, the first step 0.5 m longer
+    changed = head(braking, cmd, bev)[0] - head(hist, cmd, bev)[0]
+    assert changed.abs().max() > 0

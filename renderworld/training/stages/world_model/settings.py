@@ -175,6 +175,8 @@ class StageSettings:
     pose_anchors: str = "ctr"
     pose_step_weighting: str = "uniform"
     movers: str = "static"
+    pose_kinematics: bool = False
+    pose_lr_scale: float = 1.0
 
 
 def _number(s: Any, key: str, default: float) -> float:
@@ -219,6 +221,12 @@ def stage_settings(cfg: Any) -> StageSettings:
     mirror = s.get("pose_mirror", False)
     if not isinstance(mirror, bool):
         raise ValueError(f"stage.pose_mirror: expected true or false, got {mirror!r}")
+    kinematics = s.get("pose_kinematics", False)
+    if not isinstance(kinematics, bool):
+        raise ValueError(f"stage.pose_kinematics: expected true or false, got {kinematics!r}")
+    lr_scale = _number(s, "pose_lr_scale", 1.0)
+    if lr_scale <= 0:
+        raise ValueError(f"stage.pose_lr_scale: expected a number > 0, got {lr_scale!r}")
     return StageSettings(
         str(ckpt),
         history,
@@ -231,6 +239,8 @@ def stage_settings(cfg: Any) -> StageSettings:
         pose_anchors=_choice(s, "pose_anchors", "ctr", ANCHORS),
         pose_step_weighting=_choice(s, "pose_step_weighting", "uniform", POSE_STEP_WEIGHTINGS),
         movers=_choice(s, "movers", "static", MOVERS),
+        pose_kinematics=kinematics,
+        pose_lr_scale=lr_scale,
     )
 
 
@@ -288,16 +298,18 @@ def build_world_model(
 ) -> WorldModel | PoseWarpWorldModel:
     """:class:`WorldModel` (``"tokens"``) or :class:`PoseWarpWorldModel` (``"pose_warp"``).
 
-    ``cfg``: the run config whose ``stage.pose_anchors`` (default ``"ctr"``) the pose head uses
-    and whose ``stage.movers`` (default ``"static"``) the forecast applies (validated by
-    :func:`stage_settings`).
+    ``cfg``: the run config whose ``stage.pose_anchors`` (default ``"ctr"``) and
+    ``stage.pose_kinematics`` (default false) the pose head uses and whose ``stage.movers``
+    (default ``"static"``) the forecast applies (validated by :func:`stage_settings`).
     """
     if kind != "pose_warp":
         return WorldModel(config)
     if cfg is None:
         return PoseWarpWorldModel(config)
     st = stage_settings(cfg)
-    return PoseWarpWorldModel(config, anchors=st.pose_anchors, movers=st.movers)
+    return PoseWarpWorldModel(
+        config, anchors=st.pose_anchors, movers=st.movers, kinematics=st.pose_kinematics
+    )
 
 
 def extra_train_roots(cfg: Any) -> list[tuple[Path, Path]]:

@@ -107,6 +107,11 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         return tuple(m for m in wme.FORECASTERS if m not in wmp.POSE_METHODS or m in extra)
 
     # ------------------------------------------------------------------ Stage API
+    def lr_scales(self) -> dict[str, float]:
+        """The pose head's learning-rate factor (``stage.pose_lr_scale``; pose_warp only)."""
+        scale = self.settings.pose_lr_scale
+        return {"pose.": scale} if self.forecaster == "pose_warp" and scale != 1.0 else {}
+
     def _windows(self, cfg: Any, split: str, occ_root, gt_targets: bool) -> WorldModelWindows:
         st = self.settings
         return WorldModelWindows(
