@@ -9,19 +9,19 @@ and training variants can be compared over seeds before a full world-model train
 
 Variants (``--variant``, comma-separated): ``pool8`` (8 x 8 BEV pooling), ``wide`` (a wider BEV
 CNN), ``nobev`` (no bird's-eye view), ``drop`` (dropout 0.2 in the MLP), ``motion`` (three more BEV
-channels: where the object-CV movers will be at +1 / +2 / +3 s), ``kin`` (the head also reads
-:func:`~renderworld.world.pose.kinematic_features`; ``stage.pose_kinematics``). ``--tta``
-averages each prediction with its mirrored scene's; ``--brake`` stops the plan ``--gap`` m short
-of the first step where the ego box (inflated by ``--margin`` m) meets a mover moved at its
-history velocity.
+channels: where the object-CV movers will be at +1 / +2 / +3 s), ``kin`` / ``nokin`` (the head
+reads :func:`~renderworld.world.pose.kinematic_features` or not, whatever the experiment's
+``stage.pose_kinematics``). ``--tta`` averages each prediction with its mirrored scene's;
+``--brake`` stops the plan ``--gap`` m short of the first step where the ego box (inflated by
+``--margin`` m) meets a mover moved at its history velocity.
 
 Usage::
 
     python benchmarks/pose_head_study.py --data-root data/sim_mini \\
         --tokenizer outputs/demo/tokenizer/checkpoints/last.pt --library data/sim_scenarios \\
         --val data/sim_mini data/sim_mini_s77 data/sim_interactions@v1.0-interactions \\
-        [--steps 800] [--seed 0] [--lr 1e-3] [--variant kin,motion] [--tta]
-        [--brake --margin 0.5 --gap 3]
+        [--steps 800] [--warmup-steps 0] [--clip 1] [--seed 0] [--lr 1e-3]
+        [--variant kin,motion] [--tta] [--brake --margin 0.5 --gap 3]
 """
 
 from __future__ import annotations
@@ -193,8 +193,11 @@ def main() -> None:
     ap.add_argument("--library", default=None, help="scenario library data root (training)")
     ap.add_argument("--val", nargs="+", required=True, help="data roots (path[@version]) to score")
     ap.add_argument("--steps", type=int, default=800)
+    ap.add_argument("--warmup-steps", type=int, default=0, help="steps of a first schedule")
+    ap.add_argument("--clip", type=float, default=1.0, help="gradient-norm clip of the head")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--lr", type=float, default=1e-3)
+    lr_help = "default: the experiment's optimizer.lr x stage.pose_lr_scale"
+    ap.add_argument("--lr", type=float, default=None, help=lr_help)
     ap.add_argument("--weight-decay", type=float, default=0.01)
     ap.add_argument("--yaw-weight", type=float, default=None, help="default: the experiment's")
     ap.add_argument("--variant", default="")
@@ -209,8 +212,11 @@ def main() -> None:
     stage = get_stage(cfg.stage.name, cfg.stage._target_module_)(cfg)
     train_set, _ = stage.build_datasets(cfg)
     head = stage.build_model(cfg).pose
-    if "kin" in variants:
-        head = PoseHead(head.history, head.steps, anchors=head.anchors, kinematics=True)
+    if variants & {"kin", "nokin"}:
+        head = PoseHead(head.history, head.steps, anchors=head.anchors,
+                        kinematics="kin" in variants)  # fmt: skip
+    if args.lr is None:
+        args.lr = float(cfg.optimizer.lr) * stage.settings.pose_lr_scale
     apply_variants(head, variants)
     if "nobev" in variants:
         head.bev = _NoBev(head.bev[8].out_features)
@@ -220,13 +226,16 @@ def main() -> None:
     loader = DataLoader(train_set, batch_size=4, shuffle=True, drop_last=True,
                         generator=torch.Generator().manual_seed(args.seed))  # fmt: skip
     it, t0 = iter(loader), time.time()
-    for i in range(args.steps):
+    # --warmup-steps: a first schedule of its own (the stage's pose_warmup_steps), then --steps.
+    schedule = [(i, args.warmup_steps) for i in range(args.warmup_steps)]
+    schedule += [(i, args.steps) for i in range(args.steps)]
+    for i, n in schedule:
         try:
             batch = next(it)
         except StopIteration:
             it = iter(loader)
             batch = next(it)
-        scale = min(1.0, (i + 1) / 20) * 0.5 * (1 + math.cos(math.pi * i / args.steps))
+        scale = min(1.0, (i + 1) / 20) * 0.5 * (1 + math.cos(math.pi * i / n))
         for g in opt.param_groups:
             g["lr"] = args.lr * scale
         hist, fut = batch["history_poses"].float(), batch["future_poses"].float()
@@ -238,9 +247,10 @@ def main() -> None:
             loss = loss + 0.5 * pose_loss(pred, gt, valid, yaw_weight=yaw_w)["pose"]
         opt.zero_grad()
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(head.parameters(), 1.0)
+        torch.nn.utils.clip_grad_norm_(head.parameters(), args.clip)
         opt.step()
-    print(f"pose head, {args.steps} steps, seed {args.seed}, variants {sorted(variants) or '-'}"
+    print(f"pose head, {args.warmup_steps} + {args.steps} steps, lr {args.lr:g}, "
+          f"clip {args.clip:g}, seed {args.seed}, variants {sorted(variants) or '-'}"
           f"{', tta' if args.tta else ''}"
           f"{f', brake (margin {args.margin} m, gap {args.gap} m)' if args.brake else ''}: "
           f"trained in {time.time() - t0:.0f} s")  # fmt: skip

@@ -42,7 +42,7 @@ from renderworld.training.loggers import MetricLogger, MetricWindow
 from renderworld.training.optim import build_optimizer, build_scheduler, default_param_groups
 from renderworld.training.registry import Stage
 from renderworld.training.schedule import write_schedule
-from renderworld.training.seed import get_rng_state, seed_everything, set_rng_state
+from renderworld.training.seed import get_rng_state, rng_isolated, seed_everything, set_rng_state
 from renderworld.training.validation import (
     autocast_context,
     build_val_loader,
@@ -290,6 +290,9 @@ class Trainer:
         tcfg, info = self.tcfg, self.info
         self._announce()
         self.model.train()
+        if self.step == 0:
+            with rng_isolated():
+                self.stage.warm_start(self.model)
         self.stage.on_train_start(self.model, str(self.run_dir))
         bar = tqdm(
             total=self.total_steps,

@@ -122,6 +122,11 @@ class Stage(ABC):
         (``renderworld.training.optim.default_param_groups``); empty: one rate."""
         return {}
 
+    def warm_start(self, model: nn.Module) -> None:  # noqa: B027 - optional
+        """Called once before the first step of a fresh run, never on a resume (its result is
+        in the checkpoints): e.g. fit one part of the model alone first. The loop isolates the
+        global RNGs around it, so the run's own random stream is the same with or without it."""
+
     def on_train_start(self, model: nn.Module, run_dir: str) -> None:  # noqa: B027 - optional
         """Called once before the first step (also after a resume)."""
 

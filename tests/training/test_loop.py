@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import random
 import sys
 import types
 
@@ -52,6 +53,40 @@ def test_a_stages_lr_scales_reach_the_optimizer(tmp_path, monkeypatch):
     c, d = run("scaled10", 10), run("scaled20", 20)
     torch.testing.assert_close(c["1.bias"], d["1.bias"], atol=1e-6, rtol=0)  # at ~0 rate
     assert (c["1.weight"] - d["1.weight"]).abs().max() > 1e-3  # the rest still trains
+
+
+def test_warm_start_runs_once_on_a_fresh_run_and_keeps_the_rng_stream(tmp_path, monkeypatch):
+    from tests.training.regression_stage import RegressionStage
+
+    common = ["stage.dropout=0.1", "trainer.max_steps=12", "trainer.ckpt_every=6"]
+    train(fit_cfg(tmp_path / "ref", *common))
+    calls = []
+
+    def draws(self, model):  # random numbers only: the run's own stream must not shift
+        calls.append("draws")
+        torch.rand(100)
+        random.random()
+
+    monkeypatch.setattr(RegressionStage, "warm_start", draws)
+    train(fit_cfg(tmp_path / "draws", *common))
+    assert calls == ["draws"]
+    ref = params_of(tmp_path / "ref/checkpoints/last.pt")
+    got = params_of(tmp_path / "draws/checkpoints/last.pt")
+    for k in ref:
+        assert torch.equal(ref[k], got[k]), k
+    # Not again on a resume: the checkpoint already holds its result.
+    train(fit_cfg(tmp_path / "draws", "stage.dropout=0.1", "trainer.max_steps=18",
+                  "trainer.ckpt_every=6", "resume=true"))  # fmt: skip
+    assert calls == ["draws"]
+
+    def moves(self, model):  # what it fits is kept into the training
+        with torch.no_grad():
+            model[1].bias.fill_(50.0)
+
+    monkeypatch.setattr(RegressionStage, "warm_start", moves)
+    train(fit_cfg(tmp_path / "moves", "stage.dropout=0.1", "trainer.max_steps=1"))
+    bias = params_of(tmp_path / "moves/checkpoints/last.pt")["1.bias"]
+    assert (bias > 40).all()
 
 
 def test_evaluate_reproduces_final_validation(tmp_path):

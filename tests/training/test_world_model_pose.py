@@ -78,6 +78,38 @@ def test_forecast_takes_the_warp_on_the_grid_and_the_tokens_elsewhere(wm_overrid
     assert fc["model"].shape == (2, FUTURE, *stage.grid.shape)
 
 
+def test_the_pose_warm_up_fits_the_pose_head_alone(wm_overrides, tmp_path):
+    from renderworld.training.stages.world_model.pose_warmup import warm_up_pose_head
+    from renderworld.training.stages.world_model.pose_warp import pose_terms
+
+    cfg = compose_cfg([*wm_overrides, *POSE, "stage.pose_mirror=true", f"run_dir={tmp_path}"])
+    stage = WorldModelStage(cfg)
+    train_set, _ = stage.build_datasets(cfg)
+    model = stage.build_model(cfg).train()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    batch = next(iter(DataLoader(train_set, batch_size=len(train_set))))
+    loss0 = float(pose_terms(stage, model, batch)["pose"])
+    logs = warm_up_pose_head(stage, model, train_set, 60, lr=4e-3, weight_decay=0.01,
+                             batch_size=2, seed=0, progress=False)  # fmt: skip
+    assert float(pose_terms(stage, model, batch)["pose"]) < 0.7 * loss0
+    assert logs["pose_warmup/last_loss"] < logs["pose_warmup/first_loss"]
+    after = model.state_dict()
+    for k, v in before.items():
+        assert torch.equal(v, after[k]) != k.startswith("pose."), k  # only the pose head moved
+    assert all(p.grad is None for p in model.parameters())
+    with pytest.raises(ValueError, match="steps: expected an int >= 1"):
+        warm_up_pose_head(stage, model, train_set, 0, lr=1e-3, weight_decay=0.0, batch_size=2,
+                          seed=0)  # fmt: skip
+    # The stage runs it for stage.pose_warmup_steps when the loop calls warm_start.
+    cfg = compose_cfg([*wm_overrides, *POSE, "stage.pose_warmup_steps=5", f"run_dir={tmp_path}"])
+    stage = WorldModelStage(cfg)
+    stage.build_datasets(cfg)
+    model = stage.build_model(cfg).train()
+    head = {k: v.clone() for k, v in model.pose.state_dict().items()}
+    stage.warm_start(model)
+    assert any(not torch.equal(v, model.pose.state_dict()[k]) for k, v in head.items())
+
+
 def test_trains_evaluates_and_reloads_its_kind(wm_overrides, tmp_path):
     run = tmp_path / "run"
     metrics = train(compose_cfg([*wm_overrides, *POSE, f"run_dir={run}", "trainer.max_steps=3",

@@ -31,6 +31,8 @@ BASE = ["stage=world_model", "stage.tokenizer_ckpt=tok.pt"]
         ("stage.pose_kinematics=2", "stage.pose_kinematics"),
         ("stage.pose_lr_scale=0", "stage.pose_lr_scale"),
         ("stage.pose_lr_scale=-1", "stage.pose_lr_scale"),
+        ("stage.pose_warmup_steps=-5", "stage.pose_warmup_steps"),
+        ("stage.pose_warmup_steps=1.5", "stage.pose_warmup_steps"),
     ],
 )
 @pytest.mark.parametrize("forecaster", FORECASTER_KINDS)

@@ -40,6 +40,7 @@ __all__ = [
     "mirror_poses",
     "pose_forecast",
     "pose_teacher_forced",
+    "pose_terms",
 ]
 
 #: Forecast rows of the pose-warp model beside ``model`` (variants the note compares).
@@ -175,6 +176,28 @@ def _code_shape(stage: PoseWarpStage, tokenizer: str | None) -> tuple[int, int, 
     return (len(cfg.codebook_sizes), *cfg.latent_shape)
 
 
+def pose_terms(stage: PoseWarpStage, model: Any, batch: dict, inputs: str = "occ") -> dict:
+    """The pose head's loss on a batch (:func:`renderworld.world.pose.pose_loss`: ``pose``,
+    ``pose_l2`` in metres, ``pose_yaw`` in radians), with the stage's yaw weight and step
+    weighting; in training with ``pose_mirror`` the mean over the scene and its mirror."""
+    st = stage.settings
+    occ, cmd = batch[inputs], batch["command"].long()
+    hist_poses, fut_poses = batch["history_poses"].float(), batch["future_poses"].float()
+    valid = batch["future_mask"].bool()
+    current = occ[:, st.history - 1]
+    yaw_w = st.pose_yaw_weight
+    steps = pose_step_weights(st.pose_step_weighting, st.future)
+    pred, _ = model.predict_poses(hist_poses, cmd, current)
+    pl = pose_loss(pred, fut_poses, valid, yaw_weight=yaw_w, step_weights=steps)
+    if model.training and st.pose_mirror:
+        # The mirrored scene (y -> -y, left <-> right) is as plausible: twice the pose data.
+        m_pred, _ = model.predict_poses(mirror_poses(hist_poses), mirror_command(cmd),
+                                        current.flip(2))  # fmt: skip
+        m = pose_loss(m_pred, mirror_poses(fut_poses), valid, yaw_weight=yaw_w, step_weights=steps)
+        pl = {k: 0.5 * (pl[k] + m[k]) for k in pl}
+    return pl
+
+
 def pose_teacher_forced(
     stage: PoseWarpStage,
     model: Any,
@@ -198,17 +221,7 @@ def pose_teacher_forced(
     occ, cmd = batch[inputs], batch["command"].long()
     hist_poses, fut_poses = batch["history_poses"].float(), batch["future_poses"].float()
     valid = batch["future_mask"].bool()
-    current = occ[:, h - 1]
-    yaw_w = st.pose_yaw_weight
-    steps = pose_step_weights(st.pose_step_weighting, f)
-    pred, _ = model.predict_poses(hist_poses, cmd, current)
-    pl = pose_loss(pred, fut_poses, valid, yaw_weight=yaw_w, step_weights=steps)
-    if model.training and st.pose_mirror:
-        # The mirrored scene (y -> -y, left <-> right) is as plausible: twice the pose data.
-        m_pred, _ = model.predict_poses(mirror_poses(hist_poses), mirror_command(cmd),
-                                        current.flip(2))  # fmt: skip
-        m = pose_loss(m_pred, mirror_poses(fut_poses), valid, yaw_weight=yaw_w, step_weights=steps)
-        pl = {k: 0.5 * (pl[k] + m[k]) for k in pl}
+    pl = pose_terms(stage, model, batch, inputs)
 
     b = occ.shape[0]
     toks = frame_keys(batch, b, occ.shape[1])

@@ -177,6 +177,7 @@ class StageSettings:
     movers: str = "static"
     pose_kinematics: bool = False
     pose_lr_scale: float = 1.0
+    pose_warmup_steps: int = 0
 
 
 def _number(s: Any, key: str, default: float) -> float:
@@ -227,6 +228,9 @@ def stage_settings(cfg: Any) -> StageSettings:
     lr_scale = _number(s, "pose_lr_scale", 1.0)
     if lr_scale <= 0:
         raise ValueError(f"stage.pose_lr_scale: expected a number > 0, got {lr_scale!r}")
+    warmup = s.get("pose_warmup_steps") or 0
+    if not isinstance(warmup, int) or isinstance(warmup, bool) or warmup < 0:
+        raise ValueError(f"stage.pose_warmup_steps: expected an int >= 0, got {warmup!r}")
     return StageSettings(
         str(ckpt),
         history,
@@ -241,6 +245,7 @@ def stage_settings(cfg: Any) -> StageSettings:
         movers=_choice(s, "movers", "static", MOVERS),
         pose_kinematics=kinematics,
         pose_lr_scale=lr_scale,
+        pose_warmup_steps=warmup,
     )
 
 

@@ -32,6 +32,7 @@ one pass and one table (see
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +51,7 @@ from renderworld.training.stages.world_model import heading as wmh
 from renderworld.training.stages.world_model import pose_warp as wmp
 from renderworld.training.stages.world_model.checkpoints import CheckpointModels
 from renderworld.training.stages.world_model.frozen_tokenizers import FrozenTokenizers
+from renderworld.training.stages.world_model.pose_warmup import warm_up_pose_head
 from renderworld.training.stages.world_model.report import HISTORY_COMMAND
 from renderworld.training.stages.world_model.settings import (
     EvalSetting,
@@ -76,6 +78,8 @@ from renderworld.world import (
 
 __all__ = ["WorldModelStage"]
 
+log = logging.getLogger("renderworld.training")
+
 
 @register_stage("world_model")
 class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
@@ -97,6 +101,7 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         #: Models of settings evaluated with their own checkpoint (``camera_ckpt``), by key.
         self.setting_models: dict[str, nn.Module] = {}
         self._val_set: Dataset | None = None
+        self._train_set: Dataset | None = None
         #: Stats of the model-free rows by (validation set id, length) (see ``evaluate``).
         self._fixed_stats: dict[tuple[int, int], dict[str, torch.Tensor]] = {}
 
@@ -147,7 +152,23 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
                 p.seq.max_boxes = most
             train = ConcatDataset(parts)
         self._val_set = windows(cfg.dataset.val_split, self._val_occ_root, True)
+        self._train_set = train
         return train, self._val_set
+
+    def warm_start(self, model: nn.Module) -> None:
+        """Fit the pose head alone for ``stage.pose_warmup_steps`` first (pose_warp only)."""
+        steps = self.settings.pose_warmup_steps
+        if self.forecaster != "pose_warp" or steps == 0 or self._train_set is None:
+            return
+        cfg = self.cfg
+        logs = warm_up_pose_head(
+            self, model, self._train_set, steps,
+            lr=float(cfg.optimizer.lr) * self.settings.pose_lr_scale,
+            weight_decay=float(cfg.optimizer.weight_decay),
+            batch_size=int(cfg.trainer.batch_size), seed=int(cfg.get("seed") or 0),
+            progress=bool(cfg.trainer.get("progress_bar", True)),
+        )  # fmt: skip
+        log.info(f"pose head fitted alone for {steps} steps: pose loss {logs}")
 
     def _teacher_forced(self, model: nn.Module, batch: dict, tokens: torch.Tensor):
         st = self.settings
