@@ -64,9 +64,7 @@ def warm_up_pose_head(
     if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
         raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
     if len(dataset) < batch_size:
-        raise ValueError(
-            f"dataset: {len(dataset)} windows, fewer than one batch of {batch_size}"
-        )
+        raise ValueError(f"dataset: {len(dataset)} windows, fewer than one batch of {batch_size}")
     head = model.pose
     device = next(head.parameters()).device
     opt = torch.optim.AdamW(head.parameters(), lr=lr, weight_decay=weight_decay)
