@@ -103,8 +103,10 @@ def test_the_pose_warm_up_fits_the_pose_head_alone(wm_overrides, tmp_path):
     # The stage runs it for stage.pose_warmup_steps when the loop calls warm_start.
     cfg = compose_cfg([*wm_overrides, *POSE, "stage.pose_warmup_steps=5", f"run_dir={tmp_path}"])
     stage = WorldModelStage(cfg)
-    stage.build_datasets(cfg)
     model = stage.build_model(cfg).train()
+    with pytest.raises(RuntimeError, match="stage.pose_warmup_steps=5: warm_start needs"):
+        stage.warm_start(model)  # no training windows yet: refused, not skipped
+    stage.build_datasets(cfg)
     head = {k: v.clone() for k, v in model.pose.state_dict().items()}
     stage.warm_start(model)
     assert any(not torch.equal(v, model.pose.state_dict()[k]) for k, v in head.items())

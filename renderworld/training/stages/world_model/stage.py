@@ -158,8 +158,13 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
     def warm_start(self, model: nn.Module) -> None:
         """Fit the pose head alone for ``stage.pose_warmup_steps`` first (pose_warp only)."""
         steps = self.settings.pose_warmup_steps
-        if self.forecaster != "pose_warp" or steps == 0 or self._train_set is None:
+        if self.forecaster != "pose_warp" or steps == 0:
             return
+        if self._train_set is None:
+            raise RuntimeError(
+                f"stage.pose_warmup_steps={steps}: warm_start needs the training windows; "
+                "call build_datasets first"
+            )
         cfg = self.cfg
         logs = warm_up_pose_head(
             self, model, self._train_set, steps,
