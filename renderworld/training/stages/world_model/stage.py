@@ -162,8 +162,7 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
             return
         if self._train_set is None:
             raise RuntimeError(
-                f"stage.pose_warmup_steps={steps}: warm_start needs the training windows; "
-                "call build_datasets first"
+                f"stage.pose_warmup_steps={steps}: no training windows (call build_datasets first)"
             )
         cfg = self.cfg
         logs = warm_up_pose_head(
