@@ -71,7 +71,9 @@ def simulate(config: SimConfig, out, overwrite: bool = False, progress: bool = T
         The run report (also written to ``<out>/sim_report.json``): counts, bytes, seconds,
         the mode and what it wrote (:func:`renderworld.sim.modes.mode_report`), seconds per
         stage (lidar, camera, semantics, mask_lidar, camera_depth, mask_camera, write_files,
-        ...), and per effect whether it ran, in which scenes, and the seconds it took.
+        ...), and per effect whether it ran, in which scenes, and the seconds it took. Files are
+        encoded and written on a writer thread beside the simulation: ``write_files`` is the
+        time spent handing them over and waiting for it, ``write_tables`` includes the last wait.
 
     Raises:
         ValueError: on an invalid description (before anything is written).
@@ -91,9 +93,9 @@ def simulate(config: SimConfig, out, overwrite: bool = False, progress: bool = T
         shutil.rmtree(stale, ignore_errors=True)
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     tmp.mkdir()
+    writer = DatasetWriter(tmp, config.version, config.seed, config.sensors.jpeg_quality,
+                           lidarseg=config.mode == "full", background=True)  # fmt: skip
     try:
-        writer = DatasetWriter(tmp, config.version, config.seed, config.sensors.jpeg_quality,
-                               lidarseg=config.mode == "full")  # fmt: skip
         s = config.sensors
         rig = SensorRig.build(s.image_width, s.image_height)
         mask_size = (max(int(s.image_width * s.mask_camera_scale), 8),
@@ -137,6 +139,7 @@ def simulate(config: SimConfig, out, overwrite: bool = False, progress: bool = T
         else:
             tmp.rename(out)
     except BaseException:
+        writer.close()  # no file is written into tmp after this
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     result["summary"] = report.summary()
