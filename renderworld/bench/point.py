@@ -146,6 +146,11 @@ def _world_model_latency(stage: Any, cfg: Any, ckpt_path: Path, frames: int) -> 
     return ms, params
 
 
+#: A point is measured on one thread (points run side by side); the experiments' own thread
+#: count (``trainer.num_threads``, 2 for the main job's) would otherwise apply to its evaluation.
+ONE_THREAD = "trainer.num_threads=1"
+
+
 def split_bench_overrides(overrides: list[str]) -> tuple[list[str], dict[str, str]]:
     """(Hydra overrides, ``{key: value}`` of the ``bench.<key>=value`` ones)."""
     hydra, bench = [], {}
@@ -168,7 +173,7 @@ def _heldout_metrics(spec: dict[str, Any], overrides: list[str], last: Path, poi
         cfg = compose(
             "eval",
             overrides=[f"experiment={spec['experiment']}", *overrides, f"dataset.data_root={root}",
-                       f"ckpt={last}", f"run_dir={point_dir / 'eval_heldout'}"],
+                       f"ckpt={last}", f"run_dir={point_dir / 'eval_heldout'}", ONE_THREAD],
         )  # fmt: skip
     return {f"heldout/{k}": float(v) for k, v in evaluate(cfg).items()}
 
@@ -184,7 +189,9 @@ def run(spec: dict[str, Any]) -> dict[str, Any]:
     with initialize_config_dir(config_dir=spec["config_dir"], version_base="1.3"):
         tcfg = compose("train", overrides=[exp, *train_ov, f"run_dir={run_dir}"])
         last = run_dir / "checkpoints" / "last.pt"
-        ecfg = compose("eval", overrides=[exp, *eval_ov, f"ckpt={last}", f"run_dir={eval_dir}"])
+        ecfg = compose(
+            "eval", overrides=[exp, *eval_ov, f"ckpt={last}", f"run_dir={eval_dir}", ONE_THREAD]
+        )
     resolved = OmegaConf.create(OmegaConf.to_container(tcfg, resolve=False))
     resolved.run_dir = str(run_dir)
     resolved = OmegaConf.create(OmegaConf.to_container(resolved, resolve=True))
