@@ -246,6 +246,20 @@ def test_baselines_match_renderworld_metrics_computed_directly(wm_overrides, tmp
     assert 0.0 < metrics["copy_paste/miou_step1"] < 1.0
 
 
+def test_model_free_rows_are_scored_again_for_a_new_set_under_a_reused_id(wm_overrides, tmp_path):
+    stage, model, _, val_set = _stage_and_model(wm_overrides, tmp_path)
+    one, two = Subset(val_set, [0]), Subset(val_set, [1])
+    with torch.no_grad():
+        alone = stage.evaluate(model, DataLoader(two))
+        stage._fixed_stats.clear()
+        stage.evaluate(model, DataLoader(one))
+        # What Python's id reuse looks like: a gone set's figures under the new set's id.
+        stage._fixed_stats[id(two)] = stage._fixed_stats.pop(id(one))
+        again = stage.evaluate(model, DataLoader(two))
+    key = "copy_paste/full/confusion"
+    assert key in again and torch.equal(again[key].cpu(), alone[key].cpu())
+
+
 def test_statistics_are_additive_over_shards(wm_overrides, tmp_path):
     stage, model, _, val_set = _stage_and_model(wm_overrides, tmp_path)
     with torch.no_grad():

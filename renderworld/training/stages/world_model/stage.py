@@ -102,8 +102,8 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         self.setting_models: dict[str, nn.Module] = {}
         self._val_set: Dataset | None = None
         self._train_set: Dataset | None = None
-        #: Stats of the model-free rows by (validation set id, length) (see ``evaluate``).
-        self._fixed_stats: dict[tuple[int, int], dict[str, torch.Tensor]] = {}
+        #: Model-free rows' stats by validation set id: (the set, its stats) (see ``evaluate``).
+        self._fixed_stats: dict[int, tuple[Any, dict[str, torch.Tensor]]] = {}
 
     @property
     def forecasters(self) -> tuple[str, ...]:
@@ -328,10 +328,11 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
             stats.update(wmh.empty_heading_stats(self._heading_planners, f, device, s.prefix))
         sums: dict[str, list[torch.Tensor]] = {"loss": [], "token_ce": [], "l2": []}
         first = self.eval_settings[0]
-        # The baselines and references read no model: scored once per validation set, their
-        # figures are reused by every later validation of the run.
-        data_key = (id(getattr(loader, "dataset", loader)), len(getattr(loader, "dataset", ())))
-        known = self._fixed_stats.get(data_key)
+        # The baselines and references read no model: scored once per validation set, reused by
+        # every later validation of the run. The set is held with them: its id is never reused.
+        data = getattr(loader, "dataset", loader)
+        held = self._fixed_stats.get(id(data))
+        known = held[1] if held is not None and held[0] is data else None
         for batch in loader:
             batch = self.transfer_batch(batch, device)
             occ = batch[first.inputs]
@@ -373,9 +374,8 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
             stats.update(wme.planning_to_stats(metric, f"{key}/plan"))
         fixed = tuple(f"{s.prefix}{m}/" for s in self.eval_settings for m in wme.MODEL_FREE_METHODS)
         if known is None:
-            self._fixed_stats[data_key] = {
-                k: v.clone() for k, v in stats.items() if k.startswith(fixed)
-            }
+            mine = {k: v.clone() for k, v in stats.items() if k.startswith(fixed)}
+            self._fixed_stats[id(data)] = (data, mine)
         else:
             stats.update({k: v.to(device) for k, v in known.items()})
         return stats
