@@ -50,8 +50,9 @@ def make_token(seed: int, *key) -> str:
     return hashlib.md5(("/".join(str(k) for k in (seed, *key))).encode()).hexdigest()
 
 
-def write_npz(path: Path, **arrays: np.ndarray) -> None:
-    """``np.savez_compressed``-compatible file with fixed zip timestamps (byte-reproducible)."""
+def write_npz(path: Path | io.BytesIO, **arrays: np.ndarray) -> None:
+    """``np.savez_compressed``-compatible file (a path or a binary buffer) with fixed zip
+    timestamps (byte-reproducible)."""
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
         for name, arr in arrays.items():
             buf = io.BytesIO()
@@ -113,14 +114,12 @@ class DatasetWriter:
         return rec
 
     # ------------------------------------------------------------------ files
-    def _submit(self, path: Path, encode: Callable[[], bytes | None]) -> None:
-        """Create ``path`` from ``encode()`` (its bytes; None: it wrote ``path`` itself)."""
+    def _submit(self, path: Path, encode: Callable[[], bytes]) -> None:
+        """Write ``encode()`` (the file's bytes) to ``path``, on the writer thread if any."""
 
         def job() -> int:
-            path.parent.mkdir(parents=True, exist_ok=True)
             data = encode()
-            if data is None:
-                return path.stat().st_size
+            path.parent.mkdir(parents=True, exist_ok=True)
             path.write_bytes(data)
             return len(data)
 
@@ -172,7 +171,6 @@ class DatasetWriter:
     def write_occ3d(self, scene_name: str, sample_token: str, sem, mask_lidar, mask_camera) -> str:
         """Write ``gts/<scene>/<sample>/labels.npz`` (semantics, mask_lidar, mask_camera)."""
         rel = f"gts/{scene_name}/{sample_token}/labels.npz"
-        path = self.root / rel
         arrays = {
             k: np.array(v, copy=True)
             for k, v in (
@@ -181,7 +179,13 @@ class DatasetWriter:
                 ("mask_camera", mask_camera),
             )
         }
-        self._submit(path, lambda: write_npz(path, **arrays))
+
+        def encode() -> bytes:
+            buf = io.BytesIO()
+            write_npz(buf, **arrays)
+            return buf.getvalue()
+
+        self._submit(self.root / rel, encode)
         return rel
 
     def write_map(self, token: str, raster: np.ndarray) -> str:
