@@ -157,11 +157,13 @@ def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
         family=family,
         version=cfg.get("version"),
     )
-    steps = _data_steps(cfg, p) + _occupancy_steps(p)
+    steps = _data_steps(cfg, p)
     scen = None
     if cfg.get("scenarios") and family == "mini":
+        # Listed before the trainings: the one-core simulations run beside each other.
         scen = ScenarioData.beside(p.data, repo)
         steps += scenario_steps(scen, repo)
+    steps += _occupancy_steps(p)
     if (repo / "configs" / "stage" / "world_model.yaml").is_file():
         steps += _world_model_steps(p, scen)
     steps += _viewer_steps(p, {s.name for s in steps})
@@ -180,6 +182,7 @@ def _data_steps(cfg: Any, p: _Paths) -> list[Step]:
         p.data / "renderworld_infos" / version,
         depends_on=("fixtures",) if cfg.preset else (),
         inputs=(p.repo / "data_converters", conf / "create_data.yaml"),
+        cores=1,
     )
     if not cfg.preset:
         return [convert]
@@ -197,6 +200,7 @@ def _data_steps(cfg: Any, p: _Paths) -> list[Step]:
             ),  # fmt: skip
             p.data,
             inputs=(*p.code("sim"), conf / "sim"),
+            cores=1,  # one simulation thread (and its file writer): others run beside it
         ),
         convert,
     ]
@@ -341,7 +345,8 @@ def run_main_job(cfg: Any, repo: Path) -> Path:
     t0 = time.perf_counter()
     steps = main_job_steps(cfg, repo)
     print(f"RenderWorld main job: {len(steps)} steps, outputs in {out}")
-    results = run_steps(steps, out / "logs", cwd=repo, force=list(cfg.force))
+    cores = cfg.get("cores")
+    results = run_steps(steps, out / "logs", cwd=repo, force=list(cfg.force), cores=cores)
     report = main_job_report(cfg, out, results, time.perf_counter() - t0)
     ran = sum(r.status == "ran" for r in results)
     print(f"done in {time.perf_counter() - t0:.0f} s ({ran} steps ran, {len(results) - ran} "

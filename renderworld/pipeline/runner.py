@@ -6,6 +6,11 @@ the fingerprints of the steps it depends on, and the content of the files and co
 names. Re-running the pipeline skips every step whose stamp matches; a step that was
 interrupted has no stamp and runs again (training steps resume from their own checkpoints).
 
+Steps that keep one core busy (``Step.cores=1``: the simulator, the converters) run side by
+side when the machine has cores to spare; every other step has the machine to itself. A step
+starts once its dependencies have finished and its cores are free, in list order: it may pass
+an earlier step that waits for a dependency, never one that waits for cores.
+
 Used by ``tools/run_pipeline.py`` (``make demo``).
 """
 
@@ -17,12 +22,13 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Step", "StepResult", "PipelineError", "run_steps", "fingerprint_paths"]
+__all__ = ["Step", "StepResult", "PipelineError", "fingerprint_paths", "machine_cores", "run_steps"]
 
 STAMP = ".step-done.json"
 
@@ -45,6 +51,8 @@ class Step:
         resume_args: arguments appended when ``resume_marker`` exists (an interrupted run to
             continue); not part of the fingerprint.
         resume_marker: a file whose presence means the step can resume (e.g. ``last.pt``).
+        cores: cores the step keeps busy when another step may run beside it; None: all of
+            them (the step runs alone). Not part of the fingerprint.
     """
 
     name: str
@@ -55,6 +63,7 @@ class Step:
     inputs: tuple[Path, ...] = ()
     resume_args: tuple[str, ...] = ()
     resume_marker: Path | None = None
+    cores: int | None = None
 
 
 @dataclass
@@ -113,6 +122,14 @@ def _write_stamp(step: Step, payload: dict) -> None:
     os.replace(tmp, step.out_dir / STAMP)
 
 
+def machine_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the OS reports one)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
 def run_steps(
     steps: Sequence[Step],
     log_dir: Path,
@@ -120,8 +137,13 @@ def run_steps(
     force: Sequence[str] = (),
     env: dict[str, str] | None = None,
     echo=print,
+    cores: int | None = None,
 ) -> list[StepResult]:
-    """Run steps in order, skipping those whose stamp matches their fingerprint.
+    """Run steps, skipping those whose stamp matches their fingerprint.
+
+    Steps start in list order once their dependencies have finished; ``Step.cores=1`` steps
+    share the machine's ``cores`` (their output lines are then prefixed with the step name),
+    every other step runs alone.
 
     Args:
         steps: the steps, in dependency order.
@@ -130,21 +152,28 @@ def run_steps(
         force: names of steps to re-run even when up to date (``"all"`` for every step).
         env: environment for the commands (default: this process's).
         echo: where progress lines go.
+        cores: cores to share among steps (default :func:`machine_cores`; 1: one step at a
+            time).
 
     Returns:
-        One :class:`StepResult` per step.
+        One :class:`StepResult` per step, in the order of ``steps``.
 
     Raises:
         PipelineError: when a command exits non-zero (no stamp is written for it, so the next
-            run retries it; earlier steps stay done).
+            run retries it; earlier steps stay done). Steps running beside it finish first.
+        ValueError: duplicate step names, an unknown dependency or ``cores`` < 1.
     """
     names = [s.name for s in steps]
     if len(set(names)) != len(names):
         raise ValueError(f"steps: names must be unique, got {names}")
+    cores = machine_cores() if cores is None else int(cores)
+    if cores < 1:
+        raise ValueError(f"cores: expected at least 1, got {cores}")
     log_dir = Path(log_dir)
     log_dir.mkdir(parents=True, exist_ok=True)
     upstream: dict[str, str] = {}
-    results: list[StepResult] = []
+    results: dict[str, StepResult] = {}
+    todo: list[tuple[int, Step, list[str]]] = []
     for i, step in enumerate(steps, 1):
         fp = _step_fingerprint(step, upstream)
         upstream[step.name] = fp
@@ -157,30 +186,109 @@ def run_steps(
             and "all" not in force
         ):
             echo(f"{header} — up to date, skipped (ran in {stamp.get('seconds', 0):.0f} s before)")
-            results.append(StepResult(step.name, "skipped", float(stamp.get("seconds", 0.0)), fp))
-            continue
-        if stamp and step.out_dir.exists():
+            results[step.name] = StepResult(
+                step.name, "skipped", float(stamp.get("seconds", 0.0)), fp
+            )
+        else:
+            todo.append((i, step, [header]))
+    _Scheduler(todo, upstream, results, log_dir, cwd, env, echo, cores).run()
+    return [results[n] for n in names]
+
+
+class _Scheduler:
+    """Starts the steps to run as their dependencies finish and cores free up (``run_steps``)."""
+
+    def __init__(self, todo, fingerprints, results, log_dir, cwd, env, echo, cores):
+        self.todo, self.fps, self.results = list(todo), fingerprints, results
+        self.log_dir, self.cwd, self.env, self.echo, self.cores = log_dir, cwd, env, echo, cores
+        self.done = threading.Condition()
+        self.running: dict[str, int] = {}  # step name -> cores held
+        self.finished: list[tuple[Step, float | BaseException]] = []
+        self.lock = threading.Lock()  # one output line at a time
+
+    def _cores(self, step: Step) -> int:
+        return self.cores if step.cores is None else min(max(1, step.cores), self.cores)
+
+    def _ready(self, step: Step) -> bool:
+        waiting = {s.name for _, s, _ in self.todo} | set(self.running)
+        return not (set(step.depends_on) & waiting)
+
+    def run(self) -> None:
+        failure: BaseException | None = None
+        with self.done:
+            while self.todo or self.running:
+                if failure is None:
+                    self._start_what_fits()
+                if not self.running:
+                    break
+                while not self.finished:
+                    self.done.wait()
+                step, outcome = self.finished.pop(0)
+                del self.running[step.name]
+                if isinstance(outcome, BaseException):
+                    failure = failure or outcome
+                    continue
+                fp = self.fps[step.name]
+                _write_stamp(step, {"fingerprint": fp, "seconds": outcome, "command": step.command})
+                self._say(f"    {step.name} done in {outcome:.0f} s")
+                log = self.log_dir / f"{step.name}.log"
+                self.results[step.name] = StepResult(step.name, "ran", outcome, fp, log)
+        if failure is not None:
+            raise failure
+
+    def _start_what_fits(self) -> None:
+        free = self.cores - sum(self.running.values())
+        for entry in list(self.todo):
+            _, step, header = entry
+            if not self._ready(step):
+                continue  # waits for a dependency: later steps may start first
+            need = self._cores(step)
+            if need > free or (need == self.cores and self.running):
+                return  # waits for cores: nothing after it starts first
+            self.todo.remove(entry)
+            self.running[step.name] = need
+            free -= need
+            self._start(step, header[0], shared=need < self.cores)
+
+    def _start(self, step: Step, header: str, shared: bool) -> None:
+        if _read_stamp(step) and step.out_dir.exists():
             # It ran before from other inputs: its outputs are stale, start it over (before
             # deciding whether to resume, so a stale checkpoint is never continued).
-            echo(f"{header}\n    inputs changed since the last run: clearing {step.out_dir}")
+            header += f"\n    inputs changed since the last run: clearing {step.out_dir}"
             shutil.rmtree(step.out_dir)
         command = list(step.command)
         if step.resume_marker is not None and Path(step.resume_marker).exists():
             command += list(step.resume_args)
-            echo(f"{header} — resuming from {step.resume_marker}")
-        else:
-            echo(header)
-        echo(f"    $ {' '.join(command)}")
-        log = log_dir / f"{step.name}.log"
-        seconds = _run_logged(step.name, command, log, cwd, env)
-        _write_stamp(step, {"fingerprint": fp, "seconds": seconds, "command": step.command})
-        echo(f"    done in {seconds:.0f} s")
-        results.append(StepResult(step.name, "ran", seconds, fp, log))
-    return results
+            header += f" — resuming from {step.resume_marker}"
+        self._say(f"{header}\n    $ {' '.join(command)}")
+        prefix = f"    [{step.name}] " if shared else "    "
+        log = self.log_dir / f"{step.name}.log"
+
+        def work():
+            try:
+                outcome = _run_logged(step.name, command, log, self.cwd, self.env, prefix, self)
+            except BaseException as err:  # reported by run() once the others finish
+                outcome = err
+            with self.done:
+                self.finished.append((step, outcome))
+                self.done.notify()
+
+        threading.Thread(target=work, name=f"step-{step.name}", daemon=True).start()
+
+    def _say(self, text: str) -> None:
+        with self.lock:
+            self.echo(text)
+
+    def write(self, line: str) -> None:
+        """One line of a step's output on this process's stdout."""
+        with self.lock:
+            sys.stdout.write(line)
+            sys.stdout.flush()
 
 
-def _run_logged(name: str, command: list[str], log: Path, cwd: Path, env) -> float:
-    """Run one step's command, its output both indented on stdout and in ``log``; seconds taken.
+def _run_logged(name, command, log: Path, cwd: Path, env, prefix: str, out) -> float:
+    """Run one step's command, its output both on stdout (``out.write``, each line after
+    ``prefix``) and in ``log``; seconds taken.
 
     Raises:
         PipelineError: the command exited non-zero.
@@ -199,8 +307,7 @@ def _run_logged(name: str, command: list[str], log: Path, cwd: Path, env) -> flo
         assert proc.stdout is not None
         for line in proc.stdout:
             fh.write(line)
-            sys.stdout.write("    " + line)
-            sys.stdout.flush()
+            out.write(prefix + line)
         rc = proc.wait()
     seconds = time.perf_counter() - t0
     if rc != 0:

@@ -97,6 +97,7 @@ def scenario_steps(data: ScenarioData, repo: Path) -> list[Step]:
                 ),  # fmt: skip
                 root,
                 inputs=sim_inputs,
+                cores=1,
             )
         )
         steps.append(
@@ -113,6 +114,7 @@ def scenario_steps(data: ScenarioData, repo: Path) -> list[Step]:
                 root / "renderworld_infos" / version,
                 depends_on=(name,),
                 inputs=(repo / "data_converters", conf / "create_data.yaml"),
+                cores=1,
             )
         )
     return steps
