@@ -161,14 +161,15 @@ def run_steps(
     Raises:
         PipelineError: when a command exits non-zero (no stamp is written for it, so the next
             run retries it; earlier steps stay done). Steps running beside it finish first.
-        ValueError: duplicate step names, an unknown dependency or ``cores`` < 1.
+        ValueError: duplicate step names, an unknown dependency or ``cores`` not an int >= 1.
     """
     names = [s.name for s in steps]
     if len(set(names)) != len(names):
         raise ValueError(f"steps: names must be unique, got {names}")
-    cores = machine_cores() if cores is None else int(cores)
-    if cores < 1:
-        raise ValueError(f"cores: expected at least 1, got {cores}")
+    if cores is None:
+        cores = machine_cores()
+    elif isinstance(cores, bool) or not isinstance(cores, int) or cores < 1:
+        raise ValueError(f"cores: expected an int >= 1 or null, got {cores!r}")
     log_dir = Path(log_dir)
     log_dir.mkdir(parents=True, exist_ok=True)
     upstream: dict[str, str] = {}

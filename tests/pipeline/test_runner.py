@@ -97,6 +97,12 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
             assert any(str(ckpt) in " ".join(e.command) for e in evals), s.name
     for required in ("fixtures", "infos", "tokenizer", "img2occ", "pseudo_labels"):
         assert required in names
+    # Only the simulations and conversions share the machine; trainings and evaluations run alone.
+    shared = {s.name for s in steps if s.cores is not None}
+    assert shared == {"fixtures", "infos", "scenario_data", "scenario_infos",
+                      "interaction_data", "interaction_infos"}  # fmt: skip
+    assert all(s.cores == 1 for s in steps if s.name in shared)
+    assert max(names.index(n) for n in shared) < names.index("tokenizer")
     # One world-model evaluation after both trainings: one table with both settings.
     wm = steps[names.index("world_model_eval")]
     assert names.index("world_model_eval") > names.index("world_model_camera")

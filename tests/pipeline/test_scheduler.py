@@ -86,8 +86,9 @@ def test_one_core_leaves_every_step_alone(tmp_path):
     run_steps(steps, tmp_path / "logs", tmp_path, echo=QUIET, cores=1)
     (_, a1), (b0, _) = (_span(tmp_path, n) for n in "ab")
     assert b0 >= a1
-    with pytest.raises(ValueError, match="cores: expected at least 1, got 0"):
-        run_steps(steps, tmp_path / "logs", tmp_path, echo=QUIET, cores=0)
+    for bad in (0, "2", 1.5, True):
+        with pytest.raises(ValueError, match=r"cores: expected an int >= 1 or null, got "):
+            run_steps(steps, tmp_path / "logs", tmp_path, echo=QUIET, cores=bad)
 
 
 def test_a_failed_step_lets_the_step_beside_it_finish_and_starts_nothing_new(tmp_path):
