@@ -70,8 +70,8 @@ def _run_section(out: Path, results: list, seconds: float) -> tuple[str, str]:
     )  # fmt: skip
     made = sum(r.seconds for r in results)
     text = (
-        f"This run: {seconds:.0f} s; making every output took {made:.0f} s in all, step by step "
-        f"(the one-core steps, simulation and conversion, run side by side).\n\n{steps}"
+        f"This run: {seconds:.0f} s; making every output took {made:.0f} s in all, the sum of "
+        f"the steps' own times (one-core steps may have run side by side).\n\n{steps}"
     )
     return ("Run", text)
 

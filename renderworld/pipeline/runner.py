@@ -174,7 +174,7 @@ def run_steps(
     log_dir.mkdir(parents=True, exist_ok=True)
     upstream: dict[str, str] = {}
     results: dict[str, StepResult] = {}
-    todo: list[tuple[int, Step, list[str]]] = []
+    todo: list[tuple[Step, str, bool]] = []  # (step, header, ran before from other inputs)
     for i, step in enumerate(steps, 1):
         fp = _step_fingerprint(step, upstream)
         upstream[step.name] = fp
@@ -191,7 +191,7 @@ def run_steps(
                 step.name, "skipped", float(stamp.get("seconds", 0.0)), fp
             )
         else:
-            todo.append((i, step, [header]))
+            todo.append((step, header, stamp is not None))
     _Scheduler(todo, upstream, results, log_dir, cwd, env, echo, cores).run()
     return [results[n] for n in names]
 
@@ -209,10 +209,6 @@ class _Scheduler:
 
     def _cores(self, step: Step) -> int:
         return self.cores if step.cores is None else min(max(1, step.cores), self.cores)
-
-    def _ready(self, step: Step) -> bool:
-        waiting = {s.name for _, s, _ in self.todo} | set(self.running)
-        return not (set(step.depends_on) & waiting)
 
     def run(self) -> None:
         failure: BaseException | None = None
@@ -239,9 +235,10 @@ class _Scheduler:
 
     def _start_what_fits(self) -> None:
         free = self.cores - sum(self.running.values())
+        unfinished = {s.name for s, _, _ in self.todo} | set(self.running)
         for entry in list(self.todo):
-            _, step, header = entry
-            if not self._ready(step):
+            step, header, stale = entry
+            if unfinished.intersection(step.depends_on):
                 continue  # waits for a dependency: later steps may start first
             need = self._cores(step)
             if need > free or (need == self.cores and self.running):
@@ -249,10 +246,10 @@ class _Scheduler:
             self.todo.remove(entry)
             self.running[step.name] = need
             free -= need
-            self._start(step, header[0], shared=need < self.cores)
+            self._start(step, header, stale, shared=need < self.cores)
 
-    def _start(self, step: Step, header: str, shared: bool) -> None:
-        if _read_stamp(step) and step.out_dir.exists():
+    def _start(self, step: Step, header: str, stale: bool, shared: bool) -> None:
+        if stale and step.out_dir.exists():
             # It ran before from other inputs: its outputs are stale, start it over (before
             # deciding whether to resume, so a stale checkpoint is never continued).
             header += f"\n    inputs changed since the last run: clearing {step.out_dir}"
