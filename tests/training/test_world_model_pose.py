@@ -112,6 +112,23 @@ def test_the_pose_warm_up_fits_the_pose_head_alone(wm_overrides, tmp_path):
     assert any(not torch.equal(v, model.pose.state_dict()[k]) for k, v in head.items())
 
 
+def test_a_frozen_pose_head_gets_no_gradient_in_the_joint_training(wm_overrides, tmp_path):
+    for joint, frozen in ((None, False), (0, True)):
+        over = [*POSE, "stage.pose_warmup_steps=2", f"run_dir={tmp_path}"]
+        if joint is not None:
+            over.append(f"stage.pose_joint_lr_scale={joint}")
+        cfg = compose_cfg([*wm_overrides, *over])
+        stage = WorldModelStage(cfg)
+        train_set, _ = stage.build_datasets(cfg)
+        model = stage.build_model(cfg).train()
+        loss, logs = stage.loss(model, next(iter(DataLoader(train_set, batch_size=2))))
+        loss.backward()
+        assert float(logs["l2"]) > 0  # the pose error is still computed and logged
+        assert all((p.grad is None) == frozen for p in model.pose.parameters())
+        net = [p.grad for p in model.net.parameters() if p.grad is not None]
+        assert net and any(bool(g.abs().sum() > 0) for g in net)  # the token network trains
+
+
 def test_trains_evaluates_and_reloads_its_kind(wm_overrides, tmp_path):
     run = tmp_path / "run"
     metrics = train(compose_cfg([*wm_overrides, *POSE, f"run_dir={run}", "trainer.max_steps=3",

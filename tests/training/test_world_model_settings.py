@@ -33,6 +33,8 @@ BASE = ["stage=world_model", "stage.tokenizer_ckpt=tok.pt"]
         ("stage.pose_lr_scale=-1", "stage.pose_lr_scale"),
         ("stage.pose_warmup_steps=-5", "stage.pose_warmup_steps"),
         ("stage.pose_warmup_steps=1.5", "stage.pose_warmup_steps"),
+        ("stage.pose_joint_lr_scale=-1", "stage.pose_joint_lr_scale"),
+        ("stage.pose_joint_lr_scale=fast", "stage.pose_joint_lr_scale"),
     ],
 )
 @pytest.mark.parametrize("forecaster", FORECASTER_KINDS)
@@ -94,3 +96,18 @@ def test_the_pose_head_gets_its_kinematics_and_its_own_learning_rate():
     # The token forecaster has no pose head: one rate.
     cfg = compose_cfg([*BASE, "stage.forecaster=tokens", "stage.pose_lr_scale=4"])
     assert WorldModelStage(cfg).lr_scales() == {}
+
+
+def test_the_joint_rate_of_the_pose_head_is_its_own_or_frozen():
+    over = ["stage.forecaster=pose_warp", "stage.pose_lr_scale=4", "stage.pose_warmup_steps=10"]
+    # The warm-up keeps stage.pose_lr_scale; the joint training takes pose_joint_lr_scale.
+    assert WorldModelStage(compose_cfg([*BASE, *over])).lr_scales() == {"pose.": 4.0}
+    cfg = compose_cfg([*BASE, *over, "stage.pose_joint_lr_scale=0.5"])
+    assert WorldModelStage(cfg).lr_scales() == {"pose.": 0.5}
+    cfg = compose_cfg([*BASE, *over, "stage.pose_joint_lr_scale=0"])
+    stage = WorldModelStage(cfg)
+    assert stage.settings.pose_joint_lr_scale == 0.0 and stage.lr_scales() == {}
+    # Frozen without a warm-up the head would never be fitted: refused, naming both keys.
+    bad = [*BASE, "stage.forecaster=pose_warp", "stage.pose_joint_lr_scale=0"]
+    with pytest.raises(ValueError, match="pose_joint_lr_scale=0 .*pose_warmup_steps > 0"):
+        WorldModelStage(compose_cfg(bad))

@@ -221,7 +221,8 @@ def pose_teacher_forced(
     occ, cmd = batch[inputs], batch["command"].long()
     hist_poses, fut_poses = batch["history_poses"].float(), batch["future_poses"].float()
     valid = batch["future_mask"].bool()
-    pl = pose_terms(stage, model, batch, inputs)
+    with torch.set_grad_enabled(torch.is_grad_enabled() and st.joint_pose_lr_scale != 0):
+        pl = pose_terms(stage, model, batch, inputs)  # pose_joint_lr_scale=0: the head is frozen
 
     b = occ.shape[0]
     toks = frame_keys(batch, b, occ.shape[1])

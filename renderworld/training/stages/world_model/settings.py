@@ -178,6 +178,14 @@ class StageSettings:
     pose_kinematics: bool = False
     pose_lr_scale: float = 1.0
     pose_warmup_steps: int = 0
+    pose_joint_lr_scale: float | None = None
+
+    @property
+    def joint_pose_lr_scale(self) -> float:
+        """The pose head's rate factor after the warm-up (0: frozen): ``pose_joint_lr_scale``,
+        else ``pose_lr_scale``."""
+        joint = self.pose_joint_lr_scale
+        return self.pose_lr_scale if joint is None else joint
 
 
 def _number(s: Any, key: str, default: float) -> float:
@@ -231,6 +239,14 @@ def stage_settings(cfg: Any) -> StageSettings:
     warmup = s.get("pose_warmup_steps") or 0
     if not isinstance(warmup, int) or isinstance(warmup, bool) or warmup < 0:
         raise ValueError(f"stage.pose_warmup_steps: expected an int >= 0, got {warmup!r}")
+    joint = s.get("pose_joint_lr_scale")
+    if joint is not None:
+        joint = _number(s, "pose_joint_lr_scale", 0.0)
+        if joint == 0 and warmup == 0:
+            raise ValueError(
+                "stage.pose_joint_lr_scale=0 freezes the pose head in the joint training: it "
+                "needs stage.pose_warmup_steps > 0 to be fitted at all"
+            )
     return StageSettings(
         str(ckpt),
         history,
@@ -246,6 +262,7 @@ def stage_settings(cfg: Any) -> StageSettings:
         pose_kinematics=kinematics,
         pose_lr_scale=lr_scale,
         pose_warmup_steps=warmup,
+        pose_joint_lr_scale=joint,
     )
 
 

@@ -113,9 +113,9 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
 
     # ------------------------------------------------------------------ Stage API
     def lr_scales(self) -> dict[str, float]:
-        """The pose head's learning-rate factor (``stage.pose_lr_scale``; pose_warp only)."""
-        scale = self.settings.pose_lr_scale
-        return {"pose.": scale} if self.forecaster == "pose_warp" and scale != 1.0 else {}
+        """The pose head's learning-rate factor in the joint training (pose_warp only)."""
+        scale = self.settings.joint_pose_lr_scale
+        return {"pose.": scale} if self.forecaster == "pose_warp" and scale not in (0, 1) else {}
 
     def _windows(self, cfg: Any, split: str, occ_root, gt_targets: bool) -> WorldModelWindows:
         st = self.settings
