@@ -98,12 +98,21 @@ def test_the_pose_head_gets_its_kinematics_and_its_own_learning_rate():
     assert WorldModelStage(cfg).lr_scales() == {}
 
 
-def test_the_joint_rate_of_the_pose_head_is_its_own_or_frozen():
+def test_the_joint_rate_of_the_pose_head_is_its_own_or_frozen(monkeypatch):
+    from renderworld.training.stages.world_model import stage as stage_module
+
     over = ["stage.forecaster=pose_warp", "stage.pose_lr_scale=4", "stage.pose_warmup_steps=10"]
-    # The warm-up keeps stage.pose_lr_scale; the joint training takes pose_joint_lr_scale.
     assert WorldModelStage(compose_cfg([*BASE, *over])).lr_scales() == {"pose.": 4.0}
     cfg = compose_cfg([*BASE, *over, "stage.pose_joint_lr_scale=0.5"])
-    assert WorldModelStage(cfg).lr_scales() == {"pose.": 0.5}
+    stage = WorldModelStage(cfg)
+    assert stage.lr_scales() == {"pose.": 0.5}
+    # The warm-up keeps stage.pose_lr_scale: 4 x optimizer.lr, not the joint 0.5 x.
+    seen = {}
+    monkeypatch.setattr(stage_module, "warm_up_pose_head",
+                        lambda *a, **kw: seen.update(steps=a[3], lr=kw["lr"]) or {})  # fmt: skip
+    stage._train_set = [None] * 8
+    stage.warm_start(model=None)
+    assert seen == {"steps": 10, "lr": pytest.approx(4 * float(cfg.optimizer.lr))}
     cfg = compose_cfg([*BASE, *over, "stage.pose_joint_lr_scale=0"])
     stage = WorldModelStage(cfg)
     assert stage.settings.pose_joint_lr_scale == 0.0 and stage.lr_scales() == {}
