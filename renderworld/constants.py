@@ -38,6 +38,7 @@ __all__ = [
     "FUTURE_FRAMES",
     "COMMANDS",
     "COMMAND_LATERAL_THRESHOLD",
+    "EGO_CENTRE_OFFSET",
     "EGO_LENGTH",
     "EGO_WIDTH",
     "MINI_TRAIN_SCENES",
@@ -289,6 +290,8 @@ COMMANDS: tuple[str, ...] = ("left", "right", "straight")
 COMMAND_LATERAL_THRESHOLD: float = 2.0  # metres of lateral offset at 3 s
 EGO_LENGTH: float = 4.084  # metres
 EGO_WIDTH: float = 1.85  # metres
+#: The ego box centre lies this far ahead of the rear axle (the ego origin), metres.
+EGO_CENTRE_OFFSET: float = 1.1
 
 #: The nuScenes version folder the simulated fixtures are written as (official mini names).
 SIM_VERSION: str = "v1.0-mini"

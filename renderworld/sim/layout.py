@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from renderworld.constants import EGO_LENGTH, EGO_WIDTH, KEYFRAME_DT
+from renderworld.constants import EGO_CENTRE_OFFSET, EGO_LENGTH, EGO_WIDTH, KEYFRAME_DT
 from renderworld.sim.agents import DT_MOTION, Path, Trajectory, arc_path, rects_overlap
 from renderworld.sim.objects import SimObject, make_object
 from renderworld.sim.roads import ROAD, TERRAIN, GroundRaster, Junction, Road, RoadNetwork
@@ -27,9 +27,6 @@ __all__ = [
     "ego_box_at",
     "EGO_CENTRE_OFFSET",
 ]
-
-#: The ego box centre lies this far ahead of the rear axle (ego origin), metres.
-EGO_CENTRE_OFFSET = 1.1
 
 
 def ego_box_at(xy, yaw) -> tuple[np.ndarray, np.ndarray]:
