@@ -4,11 +4,13 @@ A planner (a reference planner or any planner bundle) drives the ego through gen
 every 0.5 s it plans from what it observes at the ego's **actual** pose (occupancy on its grid,
 history, the route's command), a kinematic model tracks the plan at 10 Hz, the scripted agents
 replay their trajectories (non-reactive), and the episode ends at the scene's end, a collision
-or leaving the road. Scores follow NAVSIM's PDM score (``scores``). ``tools/drive.py`` runs it;
-docs/closed_loop.md explains it.
+the ego is at fault for (``contacts``) or leaving the road. Scores follow NAVSIM's PDM score
+(``scores``, ``comfort``). ``tools/drive.py`` runs it; docs/closed_loop.md explains it.
 """
 
-from renderworld.sim.closed_loop.boxes import Contact, SceneBoxes
+from renderworld.sim.closed_loop.boxes import Contact, SceneBoxes, contacts_at
+from renderworld.sim.closed_loop.comfort import comfort_signals, comfort_violations, comfort_windows
+from renderworld.sim.closed_loop.contacts import LaneMap, contact_at_fault, contact_kind, is_agent
 from renderworld.sim.closed_loop.episode import END_REASONS, Episode, run_episode
 from renderworld.sim.closed_loop.kinematics import SIM_DT, EgoState, KinematicLimits, track_plan
 from renderworld.sim.closed_loop.observe import OccupancyRenderer, history_inputs, route_command
@@ -24,7 +26,13 @@ from renderworld.sim.closed_loop.planners import (
 )
 from renderworld.sim.closed_loop.report import summary_markdown, write_outputs
 from renderworld.sim.closed_loop.runner import ClosedLoopRun, run_closed_loop, self_check
-from renderworld.sim.closed_loop.scores import COMFORT_BOUNDS, aggregate, pdms, score_episode
+from renderworld.sim.closed_loop.scores import (
+    COMFORT_BOUNDS,
+    add_best_progress,
+    aggregate,
+    pdms,
+    score_episode,
+)
 
 __all__ = [
     "COMFORT_BOUNDS",
@@ -39,13 +47,22 @@ __all__ = [
     "EgoState",
     "Episode",
     "KinematicLimits",
+    "LaneMap",
     "LogReplay",
     "Observation",
     "OccupancyRenderer",
     "RuleBased",
     "SceneBoxes",
+    "add_best_progress",
     "aggregate",
+    "comfort_signals",
+    "comfort_violations",
+    "comfort_windows",
+    "contact_at_fault",
+    "contact_kind",
+    "contacts_at",
     "history_inputs",
+    "is_agent",
     "make_planner",
     "pdms",
     "route_command",

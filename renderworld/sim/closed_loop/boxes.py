@@ -5,55 +5,47 @@ half (length, width) (m). The ego box is ``EGO_LENGTH`` x ``EGO_WIDTH`` centred
 ``EGO_CENTRE_OFFSET`` ahead of the rear axle (the simulator's own ego box,
 :func:`renderworld.sim.layout.ego_box_at`); an object's is
 :meth:`renderworld.sim.objects.SimObject.footprint_half` at its trajectory's pose. Overlaps use
-the simulator's separating-axis test (:func:`renderworld.sim.agents.rects_overlap`).
+the simulator's separating-axis test (:func:`renderworld.sim.agents.rects_overlap`); each
+contact is classified and judged by :mod:`renderworld.sim.closed_loop.contacts` (NAVSIM's
+at-fault rules).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from renderworld.constants import EGO_LENGTH, EGO_WIDTH
 from renderworld.sim.agents import rects_overlap
+from renderworld.sim.closed_loop.contacts import (
+    EGO_HALF,
+    Contact,
+    LaneMap,
+    contact_at_fault,
+    contact_kind,
+    ego_corners,
+    is_agent,
+)
 from renderworld.sim.layout import World, ego_box_at
 from renderworld.sim.roads import ROAD
 
-__all__ = ["EGO_HALF", "SceneBoxes", "Contact", "ego_on_road", "first_contact"]
+__all__ = ["EGO_HALF", "SceneBoxes", "Contact", "contacts_at", "ego_on_road", "first_contact"]
 
-EGO_HALF = np.array([EGO_LENGTH / 2, EGO_WIDTH / 2])
 _VEL_DT = 0.05  # seconds either side for an object's velocity
-
-
-@dataclass(frozen=True)
-class Contact:
-    """An overlap of the ego box with an object's box.
-
-    Attributes:
-        key: the object's key (e.g. ``scn_lead``).
-        category: its category (e.g. ``vehicle.car``).
-        at_fault: False when the object touches the ego from behind (its centre behind the
-            ego's rear bumper along the ego heading): a car standing or slower than the one
-            behind is not to blame. Standing in someone's way elsewhere (e.g. stopped inside
-            the oncoming lane) is at fault.
-    """
-
-    key: str
-    category: str
-    at_fault: bool
 
 
 class SceneBoxes:
     """Every object's box at any time; static ones computed once.
 
     Args:
-        world: the generated scene.
+        world: the generated scene (kept as ``world``; its lanes as ``lanes``).
     """
 
     def __init__(self, world: World):
         objs = list(world.objects)
+        self.world = world
+        self.lanes = LaneMap(world.network)
         self.keys = [o.key for o in objs]
         self.categories = [o.category for o in objs]
+        self.agent = np.array([is_agent(c) for c in self.categories], dtype=bool)
         self.half = np.array([o.footprint_half() for o in objs]).reshape(-1, 2)
         self.moving = np.array([bool(o.moving) for o in objs], dtype=bool)
         self._objs = objs
@@ -77,23 +69,68 @@ class SceneBoxes:
             v[i] = (b - a) / (2 * _VEL_DT)
         return v
 
+    def overlapping(self, t: float, centre: np.ndarray, yaw: float) -> np.ndarray:
+        """Indices (world order) of the objects whose box at ``t`` overlaps an ego-sized box.
 
-def first_contact(boxes: SceneBoxes, t: float, x: float, y: float, yaw: float):
-    """The first object (in world order) whose box overlaps the ego box, or None."""
-    ec, ey = ego_box_at(np.array([x, y]), yaw)
+        Args:
+            t: seconds.
+            centre: [2] the ego-sized box's centre (not the rear axle), metres.
+            yaw: its heading, rad.
+        """
+        c, yy = self.at(t)
+        near = np.hypot(*(c - centre).T) < np.hypot(*EGO_HALF) + np.hypot(*self.half.T) + 0.1
+        idx = np.flatnonzero(near)
+        if not len(idx):
+            return idx
+        return idx[rects_overlap(centre, yaw, EGO_HALF, c[idx], yy[idx], self.half[idx])]
+
+
+def contacts_at(
+    boxes: SceneBoxes,
+    t: float,
+    x: float,
+    y: float,
+    yaw: float,
+    speed: float | None = None,
+    ignore=(),
+) -> list[Contact]:
+    """Every object (world order, keys in ``ignore`` left out) whose box overlaps the ego's.
+
+    Args:
+        boxes: the world's boxes.
+        t: seconds.
+        x, y, yaw: the ego's rear axle (m) and heading (rad), scene frame.
+        speed: the ego's speed, m/s (None: unknown, counted as moving).
+        ignore: object keys not to report (NAVSIM ignores an object after a contact the ego was
+            not at fault for).
+
+    Returns:
+        One :class:`Contact` per overlapping object, its kind and fault judged by
+        :mod:`renderworld.sim.closed_loop.contacts`.
+    """
+    ec, _ = ego_box_at(np.array([x, y]), yaw)
+    idx = [i for i in boxes.overlapping(t, ec, yaw) if boxes.keys[i] not in ignore]
+    if not idx:
+        return []
     c, yy = boxes.at(t)
-    near = np.hypot(*(c - ec).T) < np.hypot(*EGO_HALF) + np.hypot(*boxes.half.T) + 0.1
-    if not near.any():
-        return None
-    idx = np.flatnonzero(near)
-    hit = rects_overlap(ec, ey, EGO_HALF, c[idx], yy[idx], boxes.half[idx])
-    if not hit.any():
-        return None
-    i = int(idx[np.argmax(hit)])
-    rel = c[i] - ec
-    along = float(np.cos(yaw) * rel[0] + np.sin(yaw) * rel[1])
-    behind = along < -EGO_HALF[0]
-    return Contact(boxes.keys[i], boxes.categories[i], not behind)
+    obj_speed = np.hypot(*boxes.velocity(t).T)
+    area = None
+    out = []
+    for i in idx:
+        kind = contact_kind((x, y, yaw), speed, c[i], float(yy[i]), boxes.half[i], obj_speed[i])
+        if kind == "side" and area is None:
+            area = (boxes.lanes.straddles(ego_corners(x, y, yaw)),
+                    not ego_on_road(boxes.world, x, y, yaw))  # fmt: skip
+        fault = contact_at_fault(kind, *(area or (False, False)))
+        out.append(Contact(boxes.keys[i], boxes.categories[i], fault, kind,
+                           bool(boxes.agent[i]), round(float(t), 9)))  # fmt: skip
+    return out
+
+
+def first_contact(boxes: SceneBoxes, t: float, x: float, y: float, yaw: float, speed=None):
+    """The first object (world order) whose box overlaps the ego box (:func:`contacts_at`)."""
+    hits = contacts_at(boxes, t, x, y, yaw, speed)
+    return hits[0] if hits else None
 
 
 def ego_on_road(world: World, x: float, y: float, yaw: float) -> bool:

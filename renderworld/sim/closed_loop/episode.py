@@ -8,11 +8,18 @@ ego frame, the route's command), its plan is checked (shape [S, 2], S >= 1 waypo
 apart, finite, each step at most :data:`renderworld.planning.MAX_STEP_DISPLACEMENT_M`) and
 tracked for 0.5 s at 10 Hz by the kinematic model (:mod:`renderworld.sim.closed_loop.kinematics`).
 Agents replay their scripted trajectories (non-reactive). After every 0.1 s step the ego box
-is checked against every object's box and against the driveable surface.
+is checked against every object's box (:func:`~renderworld.sim.closed_loop.boxes.contacts_at`)
+and against the driveable surface.
 
-Ends: ``scene_end`` (the scene's last keyframe), ``collision``, ``off_road`` (a corner or edge
-midpoint of the ego box off the driveable surface), or ``planner_error`` (a plan of the wrong
-shape, NaN/inf, or an impossible step: the episode is a failure, the reason kept).
+A contact the ego is not at fault for (it stood still, it was hit from behind, or it was hit on
+its flank while inside one lane: :mod:`renderworld.sim.closed_loop.contacts`) is recorded in
+:attr:`Episode.not_at_fault_contacts` and the episode goes on; that object is then ignored, as
+NAVSIM does (non-reactive agents drive on through the ego).
+
+Ends: ``scene_end`` (the scene's last keyframe), ``collision`` (a contact the ego is at fault
+for: NC 0 with an agent, 0.5 with a static object), ``off_road`` (a corner or edge midpoint of
+the ego box off the driveable surface), or ``planner_error`` (a plan of the wrong shape,
+NaN/inf, or an impossible step: the episode is a failure, the reason kept).
 """
 
 from __future__ import annotations
@@ -24,7 +31,7 @@ import numpy as np
 
 from renderworld.constants import HISTORY_FRAMES, KEYFRAME_DT
 from renderworld.planning.request import MAX_STEP_DISPLACEMENT_M
-from renderworld.sim.closed_loop.boxes import Contact, SceneBoxes, ego_on_road, first_contact
+from renderworld.sim.closed_loop.boxes import Contact, SceneBoxes, contacts_at, ego_on_road
 from renderworld.sim.closed_loop.kinematics import (
     SIM_DT,
     STEPS_PER_KEYFRAME,
@@ -58,7 +65,9 @@ class Episode:
         states: [N, 4] (x, y, yaw, speed), scene frame, rear axle.
         end: one of :data:`END_REASONS`.
         reason: a sentence for ``planner_error`` (what the planner returned), else "".
-        contact: the object hit, for ``collision``.
+        contact: the at-fault contact that ended the episode (``collision``), else None.
+        not_at_fault_contacts: the contacts the ego was not at fault for, in time order (at
+            most one per object; the episode went on after each).
         commands: the command at each plan.
         voxelise_ms: per rendered occupancy frame, milliseconds.
         plan_ms: per plan, milliseconds.
@@ -73,6 +82,7 @@ class Episode:
     end: str
     reason: str = ""
     contact: Contact | None = None
+    not_at_fault_contacts: list = field(default_factory=list)
     commands: list = field(default_factory=list)
     voxelise_ms: list = field(default_factory=list)
     plan_ms: list = field(default_factory=list)
@@ -145,7 +155,7 @@ def run_episode(
     state = EgoState(float(x), float(y), float(yaw), traj.speed(t0))
     ep = Episode(world.name, world.spec.behaviour, planner.name, np.zeros(0), np.zeros((0, 4)),
                  "scene_end")  # fmt: skip
-    frames = []
+    frames, cleared = [], set()
     if grid is not None:
         for k, p in enumerate(hist):
             c = time.perf_counter()
@@ -176,9 +186,15 @@ def run_episode(
             times.append(tj)
             states.append((st.x, st.y, st.yaw, st.speed))
             state = st
-            contact = first_contact(boxes, tj, st.x, st.y, st.yaw)
-            if contact is not None:
-                ep.end, ep.contact, stop = "collision", contact, True
+            hits = contacts_at(boxes, tj, st.x, st.y, st.yaw, st.speed, cleared)
+            for hit in hits:
+                if not hit.at_fault:
+                    ep.not_at_fault_contacts.append(hit)
+                    cleared.add(hit.key)
+            fault = [hit for hit in hits if hit.at_fault]
+            if fault:  # an agent (NC 0) before a static object (NC 0.5), then world order
+                worst = min(fault, key=lambda f: not f.agent)
+                ep.end, ep.contact, stop = "collision", worst, True
                 break
             if not ego_on_road(world, st.x, st.y, st.yaw):
                 ep.end, stop = "off_road", True

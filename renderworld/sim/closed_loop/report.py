@@ -4,8 +4,12 @@ Files written into the output folder by :func:`write_outputs`:
 
 * ``closed_loop.json``: every row, the aggregates (all scenes and per behaviour), timings,
   the planners (privileged or not), the run's settings and the self-check.
-* ``closed_loop.csv``: one row per (planner, scene).
-* ``closed_loop.md``: the summary table, the per-behaviour table, timings.
+* ``closed_loop.csv``: one row per (planner, scene): every score and count of
+  :func:`~renderworld.sim.closed_loop.scores.score_episode`, ``EP_best`` and ``PDMS_best``
+  (:func:`~renderworld.sim.closed_loop.scores.add_best_progress`) and one ``comfort_<quantity>``
+  column per comfort bound.
+* ``closed_loop.md``: the summary table, the per-behaviour table, timings (EP and PDMS against
+  the log; ``EP_best`` and ``PDMS_best`` are in the CSV and JSON rows only).
 * ``figures/closed_loop_<behaviour>.png``: the first scene of each behaviour, bird's-eye view
   (scene frame): road, the logged ego path, each planner's driven path, the objects at the
   moment of the first collision (or at the scene end), the collision point.

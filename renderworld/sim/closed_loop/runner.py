@@ -1,7 +1,10 @@
 """Run planners over scenes in closed loop: episodes, scores, aggregates, timings, self-check.
 
 The log-replay planner proves the runner: on every scene it must end at the scene's end with
-no collision, full drivable-area compliance and progress 1 (:func:`self_check`).
+no collision, full drivable-area compliance and progress 1 (:func:`self_check`). After every
+planner drove, each row gets ``EP_best`` and ``PDMS_best``: progress over the best
+collision-free, on-road episode of its scene in the run, NAVSIM's reference
+(:func:`~renderworld.sim.closed_loop.scores.add_best_progress`).
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ from renderworld.sim.closed_loop.boxes import SceneBoxes
 from renderworld.sim.closed_loop.episode import Episode, run_episode
 from renderworld.sim.closed_loop.kinematics import KinematicLimits
 from renderworld.sim.closed_loop.observe import OccupancyRenderer
-from renderworld.sim.closed_loop.scores import aggregate, score_episode
+from renderworld.sim.closed_loop.scores import add_best_progress, aggregate, score_episode
 from renderworld.sim.layout import World
 
 __all__ = ["ClosedLoopRun", "run_closed_loop", "self_check"]
@@ -24,7 +27,9 @@ class ClosedLoopRun:
     """Everything a run produced.
 
     Attributes:
-        rows: per (planner, scene) scores (:func:`score_episode`), planners in the given order.
+        rows: per (planner, scene) scores (:func:`score_episode`), planners in the given order,
+            each with ``EP_best`` and ``PDMS_best`` (:func:`add_best_progress`, over all of
+            the run's rows).
         episodes: the matching :class:`Episode` s (states for the pictures).
         summary: ``{planner: aggregate}`` over all scenes.
         by_behaviour: ``{planner: {behaviour: aggregate}}``.
@@ -45,7 +50,7 @@ class ClosedLoopRun:
 def run_closed_loop(
     worlds: list[World], planners: list, limits: KinematicLimits | None = None, progress=True
 ) -> ClosedLoopRun:
-    """Drive every planner through every world.
+    """Drive every planner through every world, score the episodes, then add ``EP_best``.
 
     Args:
         worlds: generated scenes (:func:`renderworld.sim.build_worlds`).
@@ -101,6 +106,7 @@ def run_closed_loop(
         }
     if bar is not None:
         bar.close()
+    add_best_progress(run.rows)  # every planner's episodes: the best one per scene
     return run
 
 

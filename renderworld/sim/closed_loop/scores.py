@@ -2,21 +2,27 @@
 
 Per episode (0/1 unless said), from the 10 Hz states:
 
-* ``NC`` (no at-fault collision): 0 when the ego box overlapped an object's box and the object
-  did not come from behind (:class:`~renderworld.sim.closed_loop.boxes.Contact`).
+* ``NC`` (no at-fault collision, in {0, 0.5, 1}): 0 when the episode ended in a contact the ego
+  was at fault for with an agent (``vehicle.*``, ``human.*``), 0.5 with a static object (any
+  other category), 1 otherwise; contacts the ego was not at fault for cost nothing (the rules,
+  NAVSIM's: :mod:`renderworld.sim.closed_loop.contacts`).
 * ``DAC`` (drivable-area compliance): 0 when a corner or edge midpoint of the ego box left the
   driveable surface.
 * ``EP`` (ego progress, in [0, 1]): arc length driven along the logged ego's path (the route;
   :func:`route_progress`: nothing counts while the ego is more than 4 m off it) over the
   logged ego's over the same time (start to scene end, 10 Hz), clipped to [0, 1], rounded to
-  1e-6; 1 when the logged ego moves less than 5 m.
-* ``TTC``: 0 when at some step, with the ego moving (> 0.1 m/s), the ego box extrapolated at
-  constant velocity and heading overlaps within 1 s an object (ahead of the ego box centre)
-  extrapolated at its constant velocity.
-* ``C`` (comfort): 0 when a bound is exceeded at some step (NAVSIM's bounds): longitudinal
-  acceleration in [-4.05, 2.40] m/s^2, |lateral acceleration| <= 4.89 m/s^2, |longitudinal
-  jerk| <= 4.13 m/s^3, |yaw rate| <= 0.95 rad/s, |yaw acceleration| <= 1.93 rad/s^2; speed and
-  yaw are smoothed over 0.5 s (5 samples) before differencing.
+  1e-6; 1 when the logged ego moves less than 5 m. NAVSIM divides by the best collision-free,
+  on-road proposal's progress instead: :func:`add_best_progress` adds that reading
+  (``EP_best``, ``PDMS_best``) over the episodes of a run.
+* ``TTC``: 0 when at some 10 Hz state after the start, with the ego moving (speed at least
+  :data:`TTC_MIN_SPEED`, 0.005 m/s, NAVSIM's), the ego box moved along its heading at its
+  speed for one of :data:`TTC_DELTAS` (0, 0.3, 0.6, 0.9 s, NAVSIM's) overlaps an object's box
+  at that later time (the object's scripted trajectory), and that object's centre then, seen
+  from the ego's current rear axle, is ahead (within 30 degrees of the ego heading) or, while
+  the ego straddles lanes (a junction included) or is off the road, not behind (within 150
+  degrees). Objects of earlier contacts the ego was not at fault for are left out.
+* ``C`` (comfort): 0 when a NAVSIM bound is exceeded in some 4 s window
+  (:mod:`renderworld.sim.closed_loop.comfort`: windows, filters and bounds).
 * ``PDMS = NC x DAC x (5 TTC + 5 EP + 2 C) / 12`` (NAVSIM's PDM score with the multipliers and
   weights it uses); 0 for an episode the planner failed (``planner_error``).
 """
@@ -25,8 +31,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from renderworld.sim.agents import Path, rects_overlap
-from renderworld.sim.closed_loop.boxes import EGO_HALF, SceneBoxes
+from renderworld.sim.agents import Path
+from renderworld.sim.closed_loop.boxes import SceneBoxes, ego_on_road
+from renderworld.sim.closed_loop.comfort import COMFORT_BOUNDS, comfort_violations
+from renderworld.sim.closed_loop.contacts import (
+    AHEAD_ANGLE,
+    BEHIND_ANGLE,
+    ego_corners,
+    relative_angle,
+)
 from renderworld.sim.closed_loop.episode import Episode
 from renderworld.sim.closed_loop.kinematics import SIM_DT
 from renderworld.sim.layout import World, ego_box_at
@@ -35,22 +48,20 @@ __all__ = [
     "COMFORT_BOUNDS",
     "ROUTE_TOLERANCE",
     "SCORE_KEYS",
+    "TTC_DELTAS",
+    "TTC_MIN_SPEED",
+    "add_best_progress",
     "aggregate",
     "pdms",
     "route_progress",
     "score_episode",
 ]
 
-#: (low, high) of each comfort quantity (NAVSIM's bounds).
-COMFORT_BOUNDS = {
-    "lon_accel": (-4.05, 2.40),
-    "lat_accel": (-4.89, 4.89),
-    "lon_jerk": (-4.13, 4.13),
-    "yaw_rate": (-0.95, 0.95),
-    "yaw_accel": (-1.93, 1.93),
-}
 SCORE_KEYS = ("NC", "DAC", "EP", "TTC", "C", "PDMS")
-_TTC_HORIZON = 1.0
+#: Seconds the ego box is moved ahead at constant speed and heading for TTC (NAVSIM's).
+TTC_DELTAS = (0.0, 0.3, 0.6, 0.9)
+#: Below this speed (m/s) the ego counts as stopped and TTC does not look (NAVSIM: 5e-3).
+TTC_MIN_SPEED = 5e-3
 _MIN_LOGGED_PROGRESS = 5.0
 #: Farther than this from the route (metres), the ego makes no progress along it.
 ROUTE_TOLERANCE = 4.0
@@ -97,79 +108,67 @@ def _progress(world: World, ep: Episode) -> tuple[float, float, float]:
 
 
 def _ttc_steps(boxes: SceneBoxes, ep: Episode) -> int:
-    taus = np.arange(1, int(round(_TTC_HORIZON / SIM_DT)) + 1) * SIM_DT
+    """10 Hz states (after the start) with a TTC violation (module docstring: the rule)."""
+    cleared = [(c.t, c.key) for c in ep.not_at_fault_contacts]
     bad = 0
     for t, (x, y, yaw, v) in zip(ep.times[1:], ep.states[1:]):
-        if v <= 0.1:
+        if v < TTC_MIN_SPEED:
             continue
+        ignore = {k for tc, k in cleared if tc <= t + 1e-9}
         ec, _ = ego_box_at(np.array([x, y]), yaw)
         u = np.array([np.cos(yaw), np.sin(yaw)])
-        c, oy = boxes.at(t)
-        rel = c - ec
-        ahead = rel @ u > 0
-        reach = v * _TTC_HORIZON + np.hypot(*EGO_HALF) + np.hypot(*boxes.half.T) + 20.0
-        idx = np.flatnonzero(ahead & (np.hypot(*rel.T) < reach))
-        if not len(idx):
+        area = None  # straddling lanes or off the road: looked up once, when needed
+        for d in TTC_DELTAS:
+            idx = [i for i in boxes.overlapping(t + d, ec + v * d * u, yaw)
+                   if boxes.keys[i] not in ignore]  # fmt: skip
+            if not idx:
+                continue
+            ang = relative_angle(x, y, yaw, boxes.at(t + d)[0][idx])
+            if (ang < AHEAD_ANGLE).any():
+                break
+            if area is None:
+                area = boxes.lanes.straddles(ego_corners(x, y, yaw)) or not ego_on_road(
+                    boxes.world, x, y, yaw
+                )
+            if area and (ang <= BEHIND_ANGLE).any():
+                break
+        else:
             continue
-        vel = boxes.velocity(t)[idx]
-        e_c = ec[None] + taus[:, None] * v * u[None]  # [N, 2]
-        o_c = c[idx][None] + taus[:, None, None] * vel[None]  # [N, M, 2]
-        hit = rects_overlap(e_c[:, None], yaw, EGO_HALF, o_c, oy[idx][None],
-                            boxes.half[idx][None])  # fmt: skip
-        bad += bool(hit.any())
+        bad += 1
     return bad
-
-
-def _smooth(x: np.ndarray, n: int = 5) -> np.ndarray:
-    if len(x) < n:
-        return x
-    pad = np.pad(x, n // 2, mode="edge")
-    return np.convolve(pad, np.ones(n) / n, mode="valid")
-
-
-def _comfort(ep: Episode) -> dict[str, int]:
-    if len(ep.states) < 3:
-        return {k: 0 for k in COMFORT_BOUNDS}
-    v = _smooth(ep.states[:, 3])
-    yaw = _smooth(np.unwrap(ep.states[:, 2]))
-    acc = np.gradient(v, SIM_DT)
-    rate = np.gradient(yaw, SIM_DT)
-    q = {
-        "lon_accel": acc,
-        "lat_accel": v * rate,
-        "lon_jerk": np.gradient(acc, SIM_DT),
-        "yaw_rate": rate,
-        "yaw_accel": np.gradient(rate, SIM_DT),
-    }
-    return {k: int(((q[k] < lo - 1e-9) | (q[k] > hi + 1e-9)).sum())
-            for k, (lo, hi) in COMFORT_BOUNDS.items()}  # fmt: skip
 
 
 def score_episode(world: World, ep: Episode, boxes: SceneBoxes | None = None) -> dict:
     """Scores and counts of one episode (module docstring: the definitions).
 
     Returns:
-        A flat dict: scene, behaviour, planner, end, reason, collided_with, NC, DAC, EP, TTC,
-        C, PDMS, at_fault_collision, collision, off_road, failed, ttc_steps, comfort_steps
-        (per bound, 10 Hz steps out of bounds), progress_m, logged_progress_m, seconds (driven),
-        saturated_steps, voxelise_ms and plan_ms (means per call).
+        A flat dict: scene, behaviour, planner, end, reason, collided_with (the object of the
+        at-fault contact that ended the episode), contact_kind (its kind), NC, DAC, EP, TTC,
+        C, PDMS, at_fault_collision, collision (any contact, at fault or not), off_road,
+        failed, not_at_fault_contacts (count), not_at_fault_with (their objects' keys,
+        ";"-joined), ttc_steps, comfort_steps (per bound, 10 Hz states out of it in some 4 s
+        window), progress_m, logged_progress_m, seconds (driven), saturated_steps,
+        voxelise_ms and plan_ms (means per call).
     """
     boxes = boxes or SceneBoxes(world)
-    collision = ep.end == "collision"
-    at_fault = collision and ep.contact.at_fault
+    contact = ep.contact if ep.end == "collision" else None
+    at_fault = contact is not None and contact.at_fault
     failed = ep.end == "planner_error"
     ep_score, driven, logged = _progress(world, ep)
     ttc = _ttc_steps(boxes, ep)
-    comfort = _comfort(ep)
-    nc, dac = float(not at_fault), float(ep.end != "off_road")
+    comfort = comfort_violations(ep.states, SIM_DT)
+    nc = 1.0 if not at_fault else (0.0 if contact.agent else 0.5)
+    dac = float(ep.end != "off_road")
     ttc_s, c_s = float(ttc == 0), float(sum(comfort.values()) == 0)
+    others = ep.not_at_fault_contacts
     return {
         "scene": ep.scene,
         "behaviour": ep.behaviour,
         "planner": ep.planner,
         "end": ep.end,
         "reason": ep.reason,
-        "collided_with": ep.contact.key if ep.contact else "",
+        "collided_with": contact.key if contact else "",
+        "contact_kind": contact.kind if contact else "",
         "NC": nc,
         "DAC": dac,
         "EP": ep_score,
@@ -177,9 +176,11 @@ def score_episode(world: World, ep: Episode, boxes: SceneBoxes | None = None) ->
         "C": c_s,
         "PDMS": 0.0 if failed else pdms(nc, dac, ep_score, ttc_s, c_s),
         "at_fault_collision": bool(at_fault),
-        "collision": bool(collision),
+        "collision": bool(contact is not None or others),
         "off_road": ep.end == "off_road",
         "failed": bool(failed),
+        "not_at_fault_contacts": len(others),
+        "not_at_fault_with": ";".join(c.key for c in others),
         "ttc_steps": ttc,
         "comfort_steps": comfort,
         "progress_m": round(driven, 3),
@@ -189,6 +190,39 @@ def score_episode(world: World, ep: Episode, boxes: SceneBoxes | None = None) ->
         "voxelise_ms": float(np.mean(ep.voxelise_ms)) if ep.voxelise_ms else 0.0,
         "plan_ms": float(np.mean(ep.plan_ms)) if ep.plan_ms else 0.0,
     }
+
+
+def add_best_progress(rows: list[dict]) -> None:
+    """Add ``EP_best`` and ``PDMS_best`` to every row of a run, in place.
+
+    ``EP_best`` is NAVSIM's progress reading: the row's ``progress_m`` over the largest
+    ``progress_m`` of the rows on the same scene (any planner, log replay included) with NC 1
+    and DAC 1 (no at-fault collision, never off the road; a contact the ego was not at fault
+    for does not disqualify, as NAVSIM's NC stays 1 for it) that the planner did not fail,
+    clipped to [0, 1] and rounded to 1e-6; 1 when that largest progress is under 5 m or no row
+    qualifies (NAVSIM: 1 below its 5 m progress threshold). ``PDMS_best`` is :func:`pdms` with
+    ``EP_best`` (0 for a failed episode).
+
+    Raises:
+        ValueError: naming ``rows`` when a row lacks a key the scores give.
+    """
+    need = ("scene", "NC", "DAC", "TTC", "C", "failed", "progress_m")
+    for r in rows:
+        missing = [k for k in need if k not in r]
+        if missing:
+            raise ValueError(f"rows: expected score_episode rows, a row lacks {missing}")
+    best: dict[str, float] = {}
+    for r in rows:
+        if r["NC"] == 1.0 and r["DAC"] == 1.0 and not r["failed"]:
+            best[r["scene"]] = max(best.get(r["scene"], 0.0), float(r["progress_m"]))
+    for r in rows:
+        b = best.get(r["scene"], 0.0)
+        if b < _MIN_LOGGED_PROGRESS:
+            ep_best = 1.0
+        else:
+            ep_best = float(np.clip(round(r["progress_m"] / b, 6), 0.0, 1.0))
+        r["EP_best"] = ep_best
+        r["PDMS_best"] = 0.0 if r["failed"] else pdms(r["NC"], r["DAC"], ep_best, r["TTC"], r["C"])
 
 
 def aggregate(rows: list[dict]) -> dict:
