@@ -1,6 +1,8 @@
 # RenderWorld: two commands from a fresh clone.
 #   make test   set up .venv (torch pinned first) and run the default test suite
 #   make demo   set up .venv and run the most complete job the package can do
+#   make dev    simulate the development fixture (mini preset, seed 1001) into data/sim_dev
+#               and convert it (infos under data/sim_dev/renderworld_infos/v1.0-mini)
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV ?= .venv
@@ -8,7 +10,7 @@ TORCH_SPEC ?= torch==2.13.0
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.renderworld-installed
 
-.PHONY: setup test test-all lint demo bench clean
+.PHONY: setup test test-all lint demo dev bench clean
 
 setup: $(STAMP)
 
@@ -41,6 +43,10 @@ lint: $(STAMP)
 
 demo: $(STAMP)
 	$(PY) tools/run_pipeline.py
+
+dev: $(STAMP)
+	$(PY) tools/make_fixtures.py preset=mini seed=1001 out=data/sim_dev overwrite=true
+	$(PY) tools/create_data.py data_root=data/sim_dev version=v1.0-mini
 
 # The accuracy-vs-time sweep after `make demo` (PRESET=quick|standard|full).
 PRESET ?= quick

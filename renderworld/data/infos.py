@@ -22,6 +22,7 @@ from renderworld.data.atomic import atomic_write
 from renderworld.data.errors import DatasetError
 
 __all__ = [
+    "ALL_SPLITS",
     "INFOS_SCHEMA_VERSION",
     "HISTORY_STEPS",
     "BOX_FIELDS",
@@ -33,6 +34,8 @@ __all__ = [
 ]
 
 INFOS_SCHEMA_VERSION = 1
+#: Split name that :func:`load_infos` reads as every split of a folder (never a file's name).
+ALL_SPLITS = "all"
 #: Past per-step displacements stored per keyframe (frames t-3..t).
 HISTORY_STEPS = 4
 #: Numbers per stored box, in this order (current ego frame; metres, rad, Occ3D id).
@@ -127,25 +130,36 @@ def _plain(value):
 
 
 def load_infos(path: str | os.PathLike, split: str | None = None) -> pd.DataFrame:
-    """Read an infos parquet file (or ``<dir>/infos_<split>.parquet``).
+    """Read an infos parquet file (or ``<dir>/infos_<split>.parquet``, or every split of a folder).
 
     Args:
         path: a ``.parquet`` file, or the converter's output folder together with ``split``.
-        split: split name when ``path`` is a folder.
+        split: split name when ``path`` is a folder; ``"all"`` (:data:`ALL_SPLITS`) reads every
+            ``infos_<split>.parquet`` of the folder as one table (e.g. to evaluate every scene
+            of a held-out fixture: ``dataset.val_split=all``).
 
     Returns:
         DataFrame, one row per keyframe, sorted by (scene_index, frame_index). Its ``attrs``
-        hold ``infos_dir`` (the file's folder, base of out-relative paths) and ``metadata``.
+        hold ``infos_dir`` (the file's folder, base of out-relative paths) and ``metadata``;
+        with ``"all"`` also ``splits``, the split names read (sorted).
 
     Raises:
         DatasetError: naming the file if it is missing, unreadable, of another schema version,
-            or lacks columns.
+            or lacks columns; with ``"all"``, naming the folder if it holds no infos file, and
+            the files if their metadata differ or a sample token is in two of them.
     """
     path = Path(path)
     if path.is_dir():
         if split is None:
             raise ValueError(f"split: required when path is a folder ({path})")
+        if split == ALL_SPLITS:
+            return _load_all_splits(path)
         path = infos_file(path, split)
+    return _load_one(path)
+
+
+def _load_one(path: Path) -> pd.DataFrame:
+    """:func:`load_infos` of one file."""
     if not path.is_file():
         raise DatasetError(f"{path}: infos file not found (run tools/create_data.py)")
     try:
@@ -166,6 +180,36 @@ def load_infos(path: str | os.PathLike, split: str | None = None) -> pd.DataFram
     df = df.sort_values(["scene_index", "frame_index"], kind="stable").reset_index(drop=True)
     df.attrs["infos_dir"] = str(path.parent)
     df.attrs["metadata"] = meta
+    return df
+
+
+def _load_all_splits(folder: Path) -> pd.DataFrame:
+    """Every ``infos_<split>.parquet`` of ``folder`` as one table (see :func:`load_infos`)."""
+    files = sorted(folder.glob("infos_*.parquet"))
+    if not files:
+        raise DatasetError(
+            f"{folder}: split {ALL_SPLITS!r} found no infos_<split>.parquet file in this folder "
+            "(run tools/create_data.py)"
+        )
+    parts = [_load_one(f) for f in files]
+    meta = parts[0].attrs["metadata"]
+    for f, part in zip(files[1:], parts[1:]):
+        if part.attrs["metadata"] != meta:
+            raise DatasetError(
+                f"{folder}: split {ALL_SPLITS!r}: {f.name} and {files[0].name} come from "
+                f"different conversions (metadata {part.attrs['metadata']} vs {meta})"
+            )
+    df = pd.concat(parts, ignore_index=True)
+    twice = df["sample_token"][df["sample_token"].duplicated()]
+    if len(twice):
+        raise DatasetError(
+            f"{folder}: split {ALL_SPLITS!r}: sample token {twice.iloc[0]!r} is in two infos "
+            f"files of {[f.name for f in files]}"
+        )
+    df = df.sort_values(["scene_index", "frame_index"], kind="stable").reset_index(drop=True)
+    df.attrs["infos_dir"] = str(folder)
+    df.attrs["metadata"] = meta
+    df.attrs["splits"] = [f.name[len("infos_") : -len(".parquet")] for f in files]
     return df
 
 

@@ -19,9 +19,12 @@ poses its pose head predicted:
    (docs/world_model.md). So no road user enters the grid through newly revealed space; those
    already on it leave it.
 
-Only the history occupancy, the history poses and the command are read: the forecast uses no
-future information. Poses are (x, y, yaw) in the current ego frame (x forward, y left; metres,
-radians).
+The forecast reads the history occupancy, the history poses and the command, nothing else.
+The command is the caller's: the evaluation's standard command is derived from the ground-truth
+future (the lateral offset of the 3 s position, as VAD / UniAD / OccWorld do), so the ``model``
+rows read the future through it; the evaluation row "model, command from history" passes the
+command the same rule derives from the history and reads no future. Poses are (x, y, yaw) in
+the current ego frame (x forward, y left; metres, radians).
 """
 
 from __future__ import annotations

@@ -4,6 +4,10 @@
   the current frame without its movers carried along constant-turn-rate ego poses, plus each
   movable bird's-eye-view component of the current frame shifted by its own velocity, measured
   against an earlier history frame brought into the current frame.
+* :func:`gt_pose_movers_reference` - "GT-pose + object-CV movers" (reads the future poses: a
+  reference, never a competitor): the current frame with its movers moved by a history-only
+  rule (default :func:`object_cv_frames`) warped along the ground-truth future poses, the
+  forecast a pose-warp model with that rule would give if its ego poses were perfect.
 * :func:`gt_movers_reference` - "GT-pose warp + GT movers" (reads the future: an upper bound,
   never a competitor): the current frame without its movers warped along the ground-truth
   future poses, with the ground-truth future movers pasted in.
@@ -29,6 +33,8 @@ tensors; outputs have the type (and device) of the occupancy input.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 from scipy import ndimage
@@ -47,8 +53,10 @@ from renderworld.world.baselines import _as_torch, constant_turn_rate_poses, war
 __all__ = [
     "MAX_SPEED_MPS",
     "MOVERS",
+    "MoversFrames",
     "bev_components",
     "gt_movers_reference",
+    "gt_pose_movers_reference",
     "movable_mask",
     "object_constant_velocity_forecast",
     "object_cv_frames",
@@ -66,6 +74,11 @@ MAX_SPEED_MPS: dict[int, float] = {cls: 15.0 for cls in MOVABLE_CLASS_IDS} | {
     OCC3D_CLASSES.index("pedestrian"): 3.0
 }
 _EIGHT = np.ones((3, 3), dtype=bool)
+#: How the movers of a forecast move, history only: ``movers_frames(history_occupancy
+#: [B, T, X, Y, Z], history_poses [B, T, 3] float64, steps, grid)`` -> [B, S, X, Y, Z], frame k
+#: the current frame with its movers where they are k steps later, still in the current ego
+#: frame (as :func:`object_cv_frames`).
+MoversFrames = Callable[[torch.Tensor, torch.Tensor, int, GridSpec], torch.Tensor]
 
 
 def movable_mask(occupancy: torch.Tensor) -> torch.Tensor:
@@ -315,4 +328,50 @@ def gt_movers_reference(current, future_occupancy, future_poses, grid: GridSpec 
     warped = warp_along_poses(remove_movers(cur), poses.double().to(cur.device), grid)
     fut = fut.to(device=cur.device, dtype=cur.dtype)
     out = torch.where(movable_mask(fut), fut, warped)
+    return out.numpy() if was_np else out
+
+
+def gt_pose_movers_reference(
+    history_occupancy,
+    history_poses,
+    future_poses,
+    grid: GridSpec = OCC3D_GRID,
+    movers_frames: MoversFrames = object_cv_frames,
+):
+    """GT-pose + movers (reads the future poses: a reference, never a competitor).
+
+    The current frame with its movers moved by ``movers_frames`` (history only), frame k warped
+    into the ground-truth future ego frame k (:func:`warp_frames_along_poses`): what a pose-warp
+    forecast that moves its movers by that rule would give with perfect ego poses. The default
+    rule gives "GT-pose + object-CV movers"; a learned movers model's frames, the same row for
+    that model.
+
+    Args:
+        history_occupancy: [T, X, Y, Z] or [B, T, X, Y, Z] integer labels of frames t-T+1..t
+            (the last is the current frame), each in its own ego frame, on ``grid``.
+        history_poses: [T, 3] or [B, T, 3] (x, y, yaw) of those frames in the current ego frame.
+        future_poses: [S, 3] or [B, S, 3] ground-truth (x, y, yaw) of frames t+1..t+S in the
+            current ego frame (metres, radians).
+        grid: the occupancy grid.
+        movers_frames: see :data:`MoversFrames`.
+
+    Returns:
+        [S, X, Y, Z] or [B, S, X, Y, Z], the dtype and device (numpy or torch) of
+        ``history_occupancy``.
+    """
+    occ, was_np = _as_torch(history_occupancy, "history_occupancy")
+    hist_poses, _ = _as_torch(history_poses, "history_poses")
+    poses, _ = _as_torch(future_poses, "future_poses")
+    batched = occ.dim() == 5
+    occ_b = occ if batched else occ[None]
+    hp_b = hist_poses if batched else hist_poses[None]
+    p_b = poses if batched else poses[None]
+    if p_b.dim() != 3 or p_b.shape[0] != occ_b.shape[0] or p_b.shape[-1] != 3:
+        raise ValueError(
+            f"future_poses: expected [(B,) S, 3] matching history_occupancy "
+            f"{tuple(occ.shape)}, got {tuple(poses.shape)}"
+        )
+    frames = movers_frames(occ_b, hp_b.double(), p_b.shape[1], grid)
+    out = warp_frames_along_poses(frames, p_b.double(), grid)
+    out = out if batched else out[0]
     return out.numpy() if was_np else out

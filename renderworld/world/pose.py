@@ -325,7 +325,8 @@ class PoseWarpWorldModel(nn.Module):
     def predict_poses(
         self, history_poses: torch.Tensor, command: torch.Tensor, current: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Future poses [B, S, 3] (and every command's [B, C, S, 3]) from the history only.
+        """Future poses [B, S, 3] (and every command's [B, C, S, 3]) from the history poses, the
+        current frame and the command.
 
         Args:
             history_poses: [B, H, 3]; command: [B] int64; current: [B, X, Y, Z] labels of the

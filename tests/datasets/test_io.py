@@ -136,3 +136,38 @@ def test_infos_errors(tmp_path):
         load_infos(tmp_path / "old.parquet")
     with pytest.raises(ValueError, match=r"split: required when path is a folder"):
         load_infos(tmp_path)
+
+
+def test_infos_split_all_reads_every_split_of_the_folder(tmp_path):
+    meta = {"version": "v"}
+    val = [
+        row(scene_name="b", scene_index=1, frame_index=1, sample_token="b1", split="val"),
+        row(scene_name="b", scene_index=1, frame_index=0, sample_token="b0", split="val"),
+    ]
+    write_infos(val, tmp_path / "infos_val.parquet", metadata=meta)
+    train = [
+        row(scene_name="c", scene_index=2, frame_index=0, sample_token="c0", split="train"),
+        row(scene_name="a", scene_index=0, frame_index=0, sample_token="a0", split="train"),
+    ]
+    write_infos(train, tmp_path / "infos_train.parquet", metadata=meta)
+    df = load_infos(tmp_path, "all")
+    # Sorted like one split: by scene, then frame, whichever file a scene came from.
+    assert df["sample_token"].tolist() == ["a0", "b0", "b1", "c0"]
+    assert df["split"].tolist() == ["train", "val", "val", "train"]
+    assert df.attrs["splits"] == ["train", "val"] and df.attrs["metadata"]["version"] == "v"
+    assert df.attrs["infos_dir"] == str(tmp_path)
+    assert df.index.tolist() == [0, 1, 2, 3]
+    # Errors name the folder: none there, a token in two files, files of two conversions.
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(DatasetError, match=rf"{empty}: split 'all' found no infos_<split>"):
+        load_infos(empty, "all")
+    write_infos([row(scene_name="a", scene_index=0, frame_index=0, sample_token="a0")],
+                tmp_path / "infos_extra.parquet", metadata=meta)  # fmt: skip
+    with pytest.raises(DatasetError, match=r"sample token 'a0' is in two infos files"):
+        load_infos(tmp_path, "all")
+    write_infos([row(scene_name="d", scene_index=3, frame_index=0, sample_token="d0")],
+                tmp_path / "infos_extra.parquet", metadata={"version": "w"})  # fmt: skip
+    with pytest.raises(DatasetError, match=r"infos_train.parquet and infos_extra.parquet come from "
+                                           r"different conversions"):  # fmt: skip
+        load_infos(tmp_path, "all")

@@ -12,6 +12,9 @@ from torch.utils.data import DataLoader
 from renderworld.constants import FREE_ID
 from renderworld.training import evaluate, train
 from renderworld.training.stages.world_model import WorldModelStage
+from renderworld.training.stages.world_model.report import HISTORY_COMMAND
+from renderworld.training.stages.world_model.report import REPORT_BASENAME as REPORT
+from renderworld.world.forecast import warp_current
 from renderworld.world.pose import PoseWarpWorldModel
 
 from . import test_world_model_stage as base
@@ -44,16 +47,20 @@ def test_changing_the_future_ground_truth_leaves_the_forecast_unchanged(
     model.movers = movers
     batch = next(iter(DataLoader(val_set, batch_size=2)))
     setting = stage.eval_settings[0]
+    h = HISTORY
+    if movers == "object_cv":  # the mover path does move objects in this batch
+        args = (batch["occ"][:, :h], batch["history_poses"], batch["future_poses"], stage.grid)
+        assert not torch.equal(warp_current(*args, "object_cv"), warp_current(*args, "static"))
     yaw, yaw2 = {}, {}
     fc, traj = stage.forecast(model, batch, setting, None, yaw)
     fc2, traj2 = stage.forecast(model, perturb_future(batch, HISTORY), setting, None, yaw2)
-    assert set(yaw) == set(yaw2) == {"model", "cv_traj", "ctr_traj"}
+    assert set(yaw) == set(yaw2) == {"model", HISTORY_COMMAND, "cv_traj", "ctr_traj"}
     for k in yaw:  # the planned headings scored beside L2
         assert torch.equal(yaw[k], yaw2[k]), k
-    for k in ("model", "model_warp", "model_net", "copy_paste", "warp_cv", "warp_ctr",
-              "warp_object_cv"):  # fmt: skip
+    for k in ("model", "model_warp", "model_net", HISTORY_COMMAND, "copy_paste", "warp_cv",
+              "warp_ctr", "warp_object_cv"):  # fmt: skip
         assert torch.equal(fc[k], fc2[k]), k
-    for k in ("model", "cv_traj", "ctr_traj"):
+    for k in ("model", HISTORY_COMMAND, "cv_traj", "ctr_traj"):
         assert torch.equal(traj[k], traj2[k]), k
     # The history does drive it (the test above could not pass by ignoring every input).
     moved = copy.deepcopy(batch)
@@ -143,6 +150,19 @@ def test_trains_evaluates_and_reloads_its_kind(wm_overrides, tmp_path):
     assert m["val/model_warp/miou_1s"] == pytest.approx(metrics["val/model_warp/miou_1s"])
     rows = (tmp_path / "eval" / "world_model_eval.md").read_text()
     assert "| 3D-Occ | model, warp only |" in rows and "| 3D-Occ | model, tokens only |" in rows
+
+    # The model given the command from the history carries every column the model carries.
+    def columns(method: str) -> set[str]:
+        return {k.split("/", 2)[2] for k in m if k.startswith(f"val/{method}/")}
+
+    assert columns("model") == columns(HISTORY_COMMAND)
+    assert {"heading_median_1s", "heading_mean_2s", "collision_boxes_at_horizon_1s",
+            "movers_miou_1s", "l2_at_horizon_2s"} <= columns(HISTORY_COMMAND)  # fmt: skip
+    import csv
+
+    table = {r["method"]: r for r in csv.DictReader(open(tmp_path / "eval" / f"{REPORT}.csv"))}
+    given = {c for c, v in table["model"].items() if v != ""}
+    assert given == {c for c, v in table["model, command from history"].items() if v != ""}
     # The run bundles as a planner: the checkpoint's weights, anchors and grid.
     from renderworld.planning import load_planner
     from renderworld.training.checkpoint import load_checkpoint
@@ -310,7 +330,15 @@ def test_a_held_out_dataset_without_a_train_split_evaluates(wm_overrides, conver
         stage.build_datasets(cfg)  # training does need it ...
     val = stage.build_val_dataset(cfg)  # ... evaluation does not
     full = compose_cfg([*wm_overrides, f"run_dir={tmp_path}"])
-    assert len(val) == len(WorldModelStage(full).build_datasets(full)[1]) > 0
+    train_set, val_set = WorldModelStage(full).build_datasets(full)
+    assert len(val) == len(val_set) > 0
+    # dataset.val_split=all: every scene of the dataset (here its train and its val scene).
+    every = compose_cfg([*wm_overrides, f"run_dir={tmp_path}", "dataset.val_split=all"])
+    windows = WorldModelStage(every).build_val_dataset(every)
+    assert len(windows) == len(train_set) + len(val_set)
+    assert {windows[i]["meta"]["scene"] for i in range(len(windows))} == {
+        x["meta"]["scene"] for part in (train_set, val_set) for x in part
+    }
 
 
 def test_a_later_validation_reuses_the_model_free_rows_and_scores_alike(wm_overrides, tmp_path):

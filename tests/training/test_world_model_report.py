@@ -283,3 +283,46 @@ def test_collision_counts_table_and_csv_hold_the_counts_behind_the_rates(tmp_pat
     cv = next(r for r in rows if r["method"] == "CV-trajectory")
     assert float(cv["collision_boxes_hits_at_horizon_2s"]) == 3
     assert float(cv["collision_occupancy_evaluated_mean_to_horizon_1s"]) == 12
+
+
+def test_the_gt_pose_object_cv_reference_row(tmp_path):
+    """``warp_gt_object_cv``: the current frame's movers moved by the object-CV rule, carried
+    along the GT future poses; a model-free reference row of the table and the CSV."""
+    import torch
+    from torch.utils.data import default_collate
+
+    from renderworld.constants import GRIDS, OCC3D_CLASSES
+    from renderworld.training.stages.world_model.evaluation import MODEL_FREE_METHODS
+    from renderworld.training.stages.world_model.references import reference_forecasts
+    from renderworld.training.stages.world_model.report import METHODS, REFERENCES, write_report
+
+    grid, car = GRIDS["coarse"], OCC3D_CLASSES.index("car")
+    # The ego drives 2 cells per frame; a parked car at (30, 30) and a car at (15, 20) that
+    # drove 6 cells forward in the last second: 3 cells per frame, 1 more than the ego.
+    batch = default_collate([_mover_item([(30, 30), (15, 20)], [(34, 30), (13, 20)])])
+    refs = reference_forecasts(batch, "occ", 3, grid)
+    assert list(refs) == list(REFERENCES) and set(REFERENCES) <= set(MODEL_FREE_METHODS)
+    box = {(0, 0), (0, 1), (1, 0), (1, 1)}
+    for k in range(1, 7):
+        cells = set(zip(*(t.tolist() for t in torch.nonzero(
+            (refs["warp_gt_object_cv"][0, k - 1] == car).any(-1), as_tuple=True))))  # fmt: skip
+        want = {(30 - 2 * k + a, 30 + b) for a, b in box} | {(15 + k + a, 20 + b) for a, b in box}
+        assert cells == want, k
+        static = (refs["warp_gt_pose"][0, k - 1] == car).any(-1)
+        assert static[15 - 2 * k, 20] and not static[15 + k + 1, 20]  # the static warp: not moved
+    # Beside the other references, with the movers' column; in the markdown, CSV and legend.
+    names = [m[0] for m in METHODS]
+    assert names.index("warp_gt_pose") + 1 == names.index("warp_gt_object_cv")
+    assert names.index("warp_gt_object_cv") + 1 == names.index("warp_gt_movers")
+    metrics = _metrics("", 0.0)
+    for h in ("1s", "2s", "avg"):
+        metrics[f"val/warp_gt_object_cv/miou_{h}"] = 0.4
+        metrics[f"val/warp_gt_object_cv/movers_miou_{h}"] = 0.35
+    write_report(metrics, tmp_path, HS, ["h"])
+    md = (tmp_path / "world_model_eval.md").read_text()
+    assert "| 3D-Occ | GT-pose + object-CV movers (ref.) | 40.00 | 40.00 | 40.00 | 35.00 |" in md
+    assert "GT-pose + object-CV movers (ref.) = the current frame with its movers moved" in md
+    rows = {r["method"]: r for r in csv.DictReader(open(tmp_path / "world_model_eval.csv"))}
+    row = rows["GT-pose + object-CV movers (ref.)"]
+    assert float(row["movers_miou_2s_pct"]) == pytest.approx(35.0)
+    assert row["l2_at_horizon_1s_m"] == ""  # a forecast without a plan

@@ -38,6 +38,7 @@ from renderworld.world import (
     object_constant_velocity_forecast,
     warp_along_poses,
 )
+from renderworld.world.movers import gt_pose_movers_reference
 
 from .conftest import PYTHON, REPO, compose_cfg, subprocess_env
 
@@ -185,6 +186,57 @@ def test_tokens_are_cached_and_equal_a_fresh_encoding(wm_overrides, tmp_path):
     assert torch.equal(again, direct[:, :HISTORY])
 
 
+def _other_root(converted, out):
+    """A data root whose scenes and sample tokens are the fixture's but whose occupancy differs
+    (every GT frame mirrored along x), converted with the fixture's infos."""
+    from renderworld.data import load_occ3d_labels, save_occ3d_labels
+
+    root, infos = converted
+    for split in ("train", "val"):
+        for occ_path in load_infos(infos, split)["occ_path"]:
+            gt = load_occ3d_labels(root / occ_path)
+            save_occ3d_labels(out / occ_path, gt.semantics[::-1].copy(), gt.mask_lidar,
+                              gt.mask_camera)  # fmt: skip
+    (out / "renderworld_infos").mkdir()
+    (out / "renderworld_infos" / "v1.0-mini").symlink_to(infos)
+    return out
+
+
+def test_codes_are_keyed_by_the_data_root_of_each_frame(wm_overrides, converted, tmp_path):
+    """Two roots with the same sample tokens and different occupancy never share codes: in one
+    batch of the training set (the key follows the item through stage.extra_train_roots), and
+    one root after the other (the token cache and the pose-warp history codes)."""
+    from torch.utils.data import default_collate
+
+    from renderworld.training.stages.world_model import pose_warp as wmp
+
+    other = _other_root(converted, tmp_path / "other")
+    cfg = compose_cfg([*wm_overrides, f"run_dir={tmp_path}", f"stage.extra_train_roots=[{other}]"])
+    stage = WorldModelStage(cfg)
+    train_set, _ = stage.build_datasets(cfg)
+    n, t, cpu = len(train_set) // 2, HISTORY + FUTURE, torch.device("cpu")
+    a, b = default_collate([train_set[0]]), default_collate([train_set[n]])
+    assert a["meta"]["sample_tokens"] == b["meta"]["sample_tokens"]
+    assert not torch.equal(a["occ"], b["occ"])
+    both = default_collate([train_set[0], train_set[n]])
+    codes = stage.window_tokens(both, t, cpu)
+    direct = stage.tokenizer.encode(both["occ"].flatten(0, 1)).indices.view(codes.shape)
+    assert torch.equal(codes, direct) and not torch.equal(codes[0], codes[1])
+    stage._codes.clear()
+    assert torch.equal(stage.window_tokens(a, t, cpu), direct[:1])
+    assert torch.equal(stage.window_tokens(b, t, cpu), direct[1:])
+    # The pose-warp stage's aligned-history codes (keyed by frame and current frame).
+    from renderworld.world.pose import align_history
+
+    pose = WorldModelStage(compose_cfg([*wm_overrides, "stage.forecaster=pose_warp",
+                                        f"run_dir={tmp_path}"]))  # fmt: skip
+    hist = [wmp._aligned_history_codes(pose, x, "occ", "gt", None, cpu) for x in (a, b)]
+    h = HISTORY - 1
+    aligned = align_history(b["occ"][:, :h], b["history_poses"][:, :h], pose.grid)
+    fresh = wmp.encode_frames(pose, aligned.flatten(0, 1), None, cpu)  # no keys: not cached
+    assert torch.equal(hist[1].flatten(0, 1), fresh) and not torch.equal(hist[0], hist[1])
+
+
 def test_baselines_match_renderworld_metrics_computed_directly(wm_overrides, tmp_path):
     stage, model, _, val_set = _stage_and_model(wm_overrides, tmp_path)
     with torch.no_grad():
@@ -194,6 +246,7 @@ def test_baselines_match_renderworld_metrics_computed_directly(wm_overrides, tmp
     ctr_plan = PlanningMetric(FUTURE, (1.0, 2.0))
     gt_warp, ctr_warp = ForecastMetric(FUTURE, (1.0, 2.0)), ForecastMetric(FUTURE, (1.0, 2.0))
     obj_cv, gt_movers = ForecastMetric(FUTURE, (1.0, 2.0)), ForecastMetric(FUTURE, (1.0, 2.0))
+    gt_obj_cv = ForecastMetric(FUTURE, (1.0, 2.0))
     ctr_heading = []  # heading errors at 1 s (degrees)
     turning = 0
     for i in range(len(val_set)):
@@ -211,6 +264,8 @@ def test_baselines_match_renderworld_metrics_computed_directly(wm_overrides, tmp
                       occ[HISTORY:])  # fmt: skip
         gt_movers.update(gt_movers_reference(cur, occ[HISTORY:], item["future_poses"], grid),
                          occ[HISTORY:])  # fmt: skip
+        gt_obj_cv.update(gt_pose_movers_reference(occ[:HISTORY], hist_poses, item["future_poses"],
+                                                  grid), occ[HISTORY:])  # fmt: skip
         turning += int(item["future_poses"][:, 2].abs().max() > np.radians(5.0))
         fc_cam.update(copy_paste_forecast(cur, FUTURE), occ[HISTORY:],
                       mask=item["mask_camera"][HISTORY:])  # fmt: skip
@@ -237,6 +292,7 @@ def test_baselines_match_renderworld_metrics_computed_directly(wm_overrides, tmp
         key = name.replace("@", "_")
         assert metrics[f"warp_object_cv/{key}"] == pytest.approx(obj_cv.compute()[name]), name
         assert metrics[f"warp_gt_movers/{key}"] == pytest.approx(gt_movers.compute()[name]), name
+        assert metrics[f"warp_gt_object_cv/{key}"] == pytest.approx(gt_obj_cv.compute()[name])
     assert metrics["ctr_traj/heading_mean_1s"] == pytest.approx(np.mean(ctr_heading))
     assert metrics["ctr_traj/heading_median_1s"] == pytest.approx(np.median(ctr_heading), abs=0.01)
     assert "model/heading_mean_1s" not in metrics  # this model plans no heading
@@ -292,17 +348,17 @@ def test_eval_tool_prints_the_table_and_writes_csv_and_markdown(trained, wm_over
     header = next(line for line in out.splitlines() if line.startswith("setting"))
     for col in ("method", "mIoU 1s", "mIoU 2s", "mIoU avg", "IoU avg", "L2 1s", "L2 avg", "Col 2s"):
         assert col in header
-    body = out.splitlines()[out.splitlines().index(header) + 1 :][:10]
+    body = out.splitlines()[out.splitlines().index(header) + 1 :][:11]
     assert [line.split()[:2] for line in body] == [
         ["3D-Occ", m]
         for m in ("model", "model,", "Copy&Paste", "CV-warp", "CTR-warp", "object-CV",
-                  "CV-trajectory", "CTR-trajectory", "GT-pose", "GT-pose")
+                  "CV-trajectory", "CTR-trajectory", "GT-pose", "GT-pose", "GT-pose")
     ]  # fmt: skip
     rows = {r["method"]: r for r in csv.DictReader((tmp_path / "world_model_eval.csv").open())}
     assert list(rows) == [
         "model", "model, command from history", "Copy&Paste", "CV-warp", "CTR-warp",
         "object-CV warp", "CV-trajectory", "CTR-trajectory", "GT-pose warp (ref.)",
-        "GT-pose warp + GT movers (ref.)",
+        "GT-pose + object-CV movers (ref.)", "GT-pose warp + GT movers (ref.)",
     ]  # fmt: skip
     saved = json.loads((tmp_path / "eval_metrics.json").read_text())
     n = sum(float(rows["model"][f"{s}_windows"]) for s in ("straight", "turning"))
@@ -461,7 +517,7 @@ def test_one_eval_scores_both_settings_in_one_table(trained, wm_overrides, conve
     for k in scored:
         assert m[f"val/camera/{k[4:]}"] == pytest.approx(m[k], rel=1e-9, nan_ok=True), k
     rows = list(csv.DictReader((tmp_path / "a" / "world_model_eval.csv").open()))
-    assert [r["setting"] for r in rows] == ["3D-Occ"] * 10 + ["Camera"] * 10
+    assert [r["setting"] for r in rows] == ["3D-Occ"] * 11 + ["Camera"] * 11
     assert (
         "Camera = Img2Occ pseudo-label inputs"
         in (tmp_path / "a" / "world_model_eval.md").read_text()

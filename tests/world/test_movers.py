@@ -1,4 +1,4 @@
-"""Forecasts that move road users: the object constant-velocity warp and the GT-movers reference."""
+"""Forecasts that move road users: the object constant-velocity warp and the movers references."""
 
 from __future__ import annotations
 
@@ -8,7 +8,13 @@ import torch
 
 from renderworld.constants import FREE_ID, OCC3D_CLASSES, GridSpec
 from renderworld.metrics import ForecastMetric
-from renderworld.world.movers import gt_movers_reference, object_constant_velocity_forecast
+from renderworld.world.baselines import warp_along_poses
+from renderworld.world.forecast import warp_current
+from renderworld.world.movers import (
+    gt_movers_reference,
+    gt_pose_movers_reference,
+    object_constant_velocity_forecast,
+)
 
 # 1.6 m voxels (the coarse grid's size) on a small grid: 30 x 30 x 2.
 GRID = GridSpec("test-movers", (-24.0, -24.0, -1.0), (24.0, 24.0, 3.0), (30, 30, 2))
@@ -131,3 +137,41 @@ def test_gt_movers_reference_pastes_the_future_movers():
     assert m.compute()["movers_miou@1s"] == 1.0
     # The current frame's movers (cars at (20, 10) and (10, 10)) are removed, not left in place.
     assert _cells(out[0], CAR) == {(3, 3)}
+
+
+def test_gt_pose_object_cv_reference_moves_the_movers_and_follows_the_gt_poses():
+    # History: the ego drives 1 voxel per frame; the car at (10, 10) drives 1 voxel per frame
+    # along y. The true future: the ego speeds up to 2 voxels per frame (constant velocity and
+    # constant turn rate would say 1).
+    hist, poses = _scene(mover_step=(0, 1))
+    future = np.zeros((S, 3))
+    future[:, 0] = 2 * VOX * np.arange(1, S + 1)
+    out = gt_pose_movers_reference(hist, poses, future, GRID)
+    assert out.shape == (S, *GRID.shape) and out.dtype == np.uint8
+    static = warp_along_poses(hist[-1], future, GRID)
+    for k in range(1, S + 1):
+        # Future frame k: the parked car 2k voxels closer, the moving car 2k closer and k
+        # voxels further along y (where the object-CV rule puts it), the road carried along.
+        cars = {(20 - 2 * k, 10)} | ({(10 - 2 * k, 10 + k)} if 10 - 2 * k >= 0 else set())
+        assert _cells(out[k - 1], CAR) == cars, k
+        assert (out[k - 1][: GRID.shape[0] - 2 * k, :, 0] == ROAD).all()
+        # The static GT-pose warp leaves the moving car where it is now.
+        assert _cells(static[k - 1], CAR) == {(20 - 2 * k, 10)} | (
+            {(10 - 2 * k, 10)} if 10 - 2 * k >= 0 else set()
+        )
+    # Batched torch input; the pose-warp model's own warp along the same poses is this row.
+    hb, pb = torch.from_numpy(hist[None]), torch.from_numpy(poses[None])
+    fb = torch.from_numpy(future[None])
+    batched = gt_pose_movers_reference(hb, pb, fb, GRID)
+    assert isinstance(batched, torch.Tensor) and np.array_equal(batched[0].numpy(), out)
+    assert torch.equal(batched, warp_current(hb, pb, fb, GRID, "object_cv"))
+    # Another movers rule through the same helper (a learned one gives its row this way): a
+    # rule that moves nothing is the static GT-pose warp.
+
+    def frozen(occ, hist_poses, steps, grid):
+        return occ[:, -1:].expand(-1, steps, *occ.shape[2:])
+
+    still = gt_pose_movers_reference(hb, pb, fb, GRID, movers_frames=frozen)
+    assert np.array_equal(still[0].numpy(), static)
+    with pytest.raises(ValueError, match="future_poses"):
+        gt_pose_movers_reference(hb, pb, future[:, :2], GRID)

@@ -11,6 +11,7 @@ Importing this package registers :class:`WorldModelStage`. Its modules:
 * ``pose_warp``: training and forecasting with ``stage.forecaster: pose_warp``;
 * ``evaluation``, ``splits``, ``heading``: additive statistics of the evaluation and the
   metrics rebuilt from them;
+* ``references``: the forecasts that read the future, reported as references ("(ref.)");
 * ``report``, ``pictures``: the results table and figures of an evaluation;
 * ``bundle``: :func:`export_planner_bundle` (a trained run as a planner bundle).
 """

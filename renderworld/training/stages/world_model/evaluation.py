@@ -16,9 +16,11 @@ input reads the future), ``copy_paste`` (current frame repeated), ``warp_cv`` / 
 (current frame warped under constant velocity / constant turn rate), ``warp_object_cv``
 (CTR-warp with each movable object moved at its own history velocity), ``cv_traj`` /
 ``ctr_traj`` (the same motion models as trajectories; history only) and the references
-``warp_gt_pose`` (current frame warped along the ground-truth future poses: reads the future,
-an upper bound for a static world) and ``warp_gt_movers`` (the same with the ground-truth
-future movers pasted in).
+(:mod:`renderworld.training.stages.world_model.references`; they read the future):
+``warp_gt_pose`` (current frame warped along the ground-truth future poses, an upper bound for
+a static world), ``warp_gt_object_cv`` (the same with the movers moved by the object-CV rule:
+the pose-warp design with perfect ego poses) and ``warp_gt_movers`` (the ground-truth future
+movers pasted in).
 
 Beside the whole split, forecasts and L2 are counted on a straight / turning split of the
 windows (:func:`turning_windows`) and per class (CSV).
@@ -79,7 +81,7 @@ PLANNERS = tuple(m[0] for m in METHODS if m[3])
 #: Rows that read no model (baselines and references): their figures never change in a run.
 MODEL_FREE_METHODS = (
     "copy_paste", "warp_cv", "warp_ctr", "warp_object_cv", "cv_traj", "ctr_traj",
-    "warp_gt_pose", "warp_gt_movers",
+    "warp_gt_pose", "warp_gt_object_cv", "warp_gt_movers",
 )  # fmt: skip
 _COLL_KEYS = ("hit", "evaluated", "gt_skipped", "outside")
 

@@ -1,7 +1,9 @@
 """Frozen tokenizers of the ``world_model`` stage and the codes of its windows (a mixin).
 
 The tokenizer lives on the stage, never in the trained module; codes are cached in memory by
-(tokenizer checkpoint, source, sample token), so each keyframe is encoded once per run. Needs the
+(tokenizer checkpoint, source, frame key), the frame key being the frame's data root and sample
+token (:func:`~renderworld.training.stages.world_model.windows.frame_keys`), so each keyframe is
+encoded once per run and two datasets whose sample tokens collide never share codes. Needs the
 stage's ``cfg``, ``settings``, ``grid``, ``_tokenizers`` and ``_codes`` (declared on the class).
 """
 
@@ -34,7 +36,7 @@ class FrozenTokenizers:
     settings: StageSettings  # validated ``stage.*`` keys: ``tokenizer_ckpt``, ``cache_tokens``
     grid: GridSpec  # the run's grid; every tokenizer must have been trained on it
     _tokenizers: dict[str, SceneTokenizer]  # frozen tokenizers by checkpoint path (filled here)
-    _codes: dict[tuple[str, ...], torch.Tensor]  # cached codes by (tokenizer, source, ...) key
+    _codes: dict[tuple[str, ...], torch.Tensor]  # cached codes by (tokenizer, source, frame, ...)
 
     @property
     def tokenizer(self) -> SceneTokenizer:
@@ -83,13 +85,13 @@ class FrozenTokenizers:
 
         Args:
             inputs: batch key of the occupancy to encode (``"occ"`` or ``"occ_target"``).
-            source: name of that occupancy's source (cache key with the sample token);
-                default: the run's ``stage.occ_root`` or ``"gt"``.
+            source: name of that occupancy's source (cache key with the frame key: data root
+                and sample token); default: the run's ``stage.occ_root`` or ``"gt"``.
             tokenizer: checkpoint of the tokenizer that encodes them (a setting's own);
                 default: ``stage.tokenizer_ckpt``.
 
-        Frames already encoded (same tokenizer, source and sample token) come from the in-memory
-        cache.
+        Frames already encoded (same tokenizer, source, data root and sample token) come from
+        the in-memory cache.
         """
         occ = batch[inputs]
         b = occ.shape[0]

@@ -6,10 +6,12 @@ the current ego frame and the current frame warped along the **ground-truth** fu
 movers moved first when the model's ``movers`` is ``object_cv``), and is fitted to the future
 frames' codes (cross-entropy). Loss = token CE + ``lambda_pose`` x pose loss.
 
-Forecast (test time, leak-free): poses from the pose head (history poses, current command,
-current frame), then :func:`renderworld.world.forecast.pose_warp_forecast` - the one
-forecaster the planner calls too - with this stage's tokenizer and token cache. Only
-``history_poses``, the history occupancy and ``command`` of a batch are read.
+Forecast (test time): poses from the pose head (history poses, the batch's command, current
+frame), then :func:`renderworld.world.forecast.pose_warp_forecast` - the one forecaster the
+planner calls too - with this stage's tokenizer and token cache. Only ``history_poses``, the
+history occupancy and ``command`` of a batch are read; the windows' command is derived from the
+GT future (as VAD / UniAD), and the row "model, command from history" passes the command the
+same rule derives from the history instead, so that no input reads the future.
 
 The functions take the stage itself; :class:`PoseWarpStage` names what they read of it.
 """

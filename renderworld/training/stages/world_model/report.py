@@ -54,10 +54,11 @@ METHODS: tuple[tuple[str, str, bool, bool], ...] = (
     ("cv_traj", "CV-trajectory", False, True),
     ("ctr_traj", "CTR-trajectory", False, True),
     ("warp_gt_pose", "GT-pose warp (ref.)", True, False),
+    ("warp_gt_object_cv", "GT-pose + object-CV movers (ref.)", True, False),
     ("warp_gt_movers", "GT-pose warp + GT movers (ref.)", True, False),
 )
 #: Methods that read the future (reported as references, never as competitors).
-REFERENCES = ("warp_gt_pose", "warp_gt_movers")
+REFERENCES = ("warp_gt_pose", "warp_gt_object_cv", "warp_gt_movers")
 #: Window subsets of the CSV's split columns (see ``splits.TURN_THRESHOLD_DEG``).
 SPLITS = ("straight", "turning")
 REPORT_BASENAME = "world_model_eval"
@@ -77,6 +78,9 @@ _LEGEND_BASELINES = (
     "(x, y, yaw): it reads the future, an upper bound for a static world, not a method. "
     "object-CV warp = the current frame along the CTR poses, each movable bird's-eye-view "
     "component shifted by its own velocity measured against frame t-2 (history only). "
+    "GT-pose + object-CV movers (ref.) = the current frame with its movers moved as in the "
+    "object-CV warp, warped along the ground-truth future poses: the pose-warp model's design "
+    "with perfect ego poses; reads the future, not a method. "
     "GT-pose warp + GT movers (ref.) = the GT-pose warp without the current movers, the "
     "ground-truth future movers pasted in: reads the future, an upper bound, not a method. "
     "Movers = mIoU of the eight movable classes (car, truck, bus, trailer, "
@@ -85,9 +89,10 @@ _LEGEND_BASELINES = (
 )
 _LEGEND_COMMAND = (
     "The model reads a driving command (left / right / straight) derived from the ground-truth "
-    "future: the lateral offset of the 3 s position, ±2 m (as VAD / UniAD); the baselines read "
-    "none. model, command from history = the same model given the command that rule derives "
-    "from the constant-turn-rate extrapolation of the history: no input reads the future."
+    "future: the lateral offset of the 3 s position, ±2 m (as VAD / UniAD), so the model row "
+    "reads the future through its command; the baselines read none. model, command from "
+    "history = the same model given the command that rule derives from the constant-turn-rate "
+    "extrapolation of the history: no input reads the future."
 )
 _LEGEND_VARIANTS = (
     "model, warp only = the current frame warped along the model's predicted poses; model, "

@@ -62,7 +62,8 @@ class EvalSetting:
         prefix: metric-key prefix (``""`` or ``"camera/"``).
         inputs: batch key of the history occupancy (``"occ"``, or ``"occ_target"`` = the GT
             frames when the dataset's own source is pseudo labels).
-        source: name of the inputs' source (token-cache key): ``"gt"`` or the pseudo-label folder.
+        source: name of the inputs' source: ``"gt"`` or the pseudo-label folder (token-cache
+            key, with each frame's data root and sample token: ``windows.frame_keys``).
         ckpt: checkpoint of the model of this setting; None = the evaluated model itself.
         tokenizer: tokenizer checkpoint of this setting; None = ``stage.tokenizer_ckpt``.
     """

@@ -3,9 +3,9 @@
 Data: windows of ``history + future`` keyframes (``OccSequenceDataset``) from the dataset's
 Occ3D gts (``stage.occ_root: null``, the "3D-Occ" setting) or exported Img2Occ pseudo labels
 (``stage.occ_root``, the "Camera" setting). Every frame is encoded by the frozen tokenizer of
-``stage.tokenizer_ckpt`` (no grad, 32-bit), and its codes are cached in memory by sample token,
-so each keyframe is encoded once per run. The tokenizer lives on the stage, never in the trained
-module: checkpoints hold the world model only.
+``stage.tokenizer_ckpt`` (no grad, 32-bit), and its codes are cached in memory by data root and
+sample token, so each keyframe is encoded once per run. The tokenizer lives on the stage, never
+in the trained module: checkpoints hold the world model only.
 
 Forecaster (``stage.forecaster``): ``tokens`` (below: the autoregressive token model) or
 ``pose_warp`` (predicted future poses carry the current frame, tokens fill newly revealed space;
@@ -17,12 +17,14 @@ accumulated from the last history frame (``cumulative_from = history - 1``, as a
 
 Evaluation (``val/``): for each window, roll out ``future`` frames from the history tokens,
 the history displacements and the **current** command (derived from the GT future; the row
-"model, command from history" gives the model the command derived from the history instead);
-decode the forecast; forecast mIoU/IoU
-per step (full volume, OccWorld protocol; and inside the camera mask, ``cam/``), planning L2
-(both conventions) and collision rates vs GT boxes and GT object occupancy, and the same for the
-baselines Copy&Paste, constant-velocity warp and constant-velocity trajectory (see
-:mod:`renderworld.training.stages.world_model.evaluation`). ``val/loss`` is the teacher-forced loss.
+"model, command from history" gives the model the command derived from the history instead:
+every figure of the model, heading included, in both forms); decode the forecast; forecast
+mIoU/IoU per step (full volume, OccWorld protocol; and inside the camera mask, ``cam/``),
+planning L2 (both conventions) and collision rates vs GT boxes and GT object occupancy, and the
+same for the baselines Copy&Paste, constant-velocity warp and constant-velocity trajectory (see
+:mod:`renderworld.training.stages.world_model.evaluation`) and the references that read the
+future (:mod:`renderworld.training.stages.world_model.references`). ``val/loss`` is the
+teacher-forced loss.
 Training validates the run's own setting; ``tools/eval.py ... pseudo_labels=DIR
 [camera_ckpt=PATH] [camera_tokenizer_ckpt=PATH]`` scores the 3D-Occ and the Camera setting in
 one pass and one table (see
@@ -52,6 +54,7 @@ from renderworld.training.stages.world_model import pose_warp as wmp
 from renderworld.training.stages.world_model.checkpoints import CheckpointModels
 from renderworld.training.stages.world_model.frozen_tokenizers import FrozenTokenizers
 from renderworld.training.stages.world_model.pose_warmup import warm_up_pose_head
+from renderworld.training.stages.world_model.references import reference_forecasts
 from renderworld.training.stages.world_model.report import HISTORY_COMMAND
 from renderworld.training.stages.world_model.settings import (
     EvalSetting,
@@ -68,7 +71,6 @@ from renderworld.world import (
     constant_turn_rate_poses,
     constant_velocity_trajectory,
     copy_paste_forecast,
-    gt_movers_reference,
     object_constant_velocity_forecast,
     teacher_forcing_split,
     warp_along_poses,
@@ -95,7 +97,8 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         self.horizons = wme.horizons_for(self.settings.future)
         #: Frozen tokenizers by checkpoint path (``stage.tokenizer_ckpt``, and a setting's own).
         self._tokenizers: dict[str, SceneTokenizer] = {}
-        #: Codes by (tokenizer checkpoint, source, sample token); pose_warp keys add fields.
+        #: Codes by (tokenizer checkpoint, source, frame key = data root + sample token, see
+        #: ``windows.frame_keys``); pose_warp keys add fields.
         self._codes: dict[tuple[str, ...], torch.Tensor] = {}
         self.eval_settings, self._val_occ_root = eval_settings(cfg)
         #: Models of settings evaluated with their own checkpoint (``camera_ckpt``), by key.
@@ -251,8 +254,8 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
                 fc, poses = wmp.pose_forecast(self, model, {**batch, "command": command}, setting)
                 fc = fc if name == "model" else {name: fc["model"]}
                 traj = poses[..., :2]
-                if headings is not None and name == "model":
-                    headings["model"] = poses[..., 2]
+                if headings is not None:
+                    headings[name] = poses[..., 2]
             else:
                 if tokens is None:
                     tokens = self.window_tokens(
@@ -277,26 +280,17 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         return torch.stack(frames, dim=1), ro.trajectory
 
     def references(self, batch: dict, setting: EvalSetting) -> dict[str, torch.Tensor]:
-        """Forecasts that read the future (reported as references, never as methods).
-
-        ``warp_gt_pose``: the setting's current frame warped along the ground-truth future
-        poses ``future_poses`` (an upper bound for a static world). ``warp_gt_movers``: the same
-        warp of the current frame without its movers, the scored target's future movers pasted
-        in (an upper bound for a forecast that moves objects).
-        """
-        h = self.settings.history
-        current = batch[setting.inputs][:, h - 1]
-        future = batch.get("occ_target", batch["occ"])[:, h:]
-        poses = batch["future_poses"]
-        return {
-            "warp_gt_pose": warp_along_poses(current, poses, self.grid),
-            "warp_gt_movers": gt_movers_reference(current, future, poses, self.grid),
-        }
+        """Forecasts [B, S, X, Y, Z] that read the future (reported as references, never as
+        methods) of the setting's inputs: ``warp_gt_pose``, ``warp_gt_object_cv``,
+        ``warp_gt_movers`` (:func:`~.references.reference_forecasts`)."""
+        return reference_forecasts(batch, setting.inputs, self.settings.history, self.grid)
 
     @property
     def _heading_planners(self) -> tuple[str, ...]:
-        """Planners whose plan carries a heading (the model's only with the pose head)."""
-        return ("cv_traj", "ctr_traj") + (("model",) if self.forecaster == "pose_warp" else ())
+        """Planners whose plan carries a heading (the model's, both commands, with the pose
+        head only)."""
+        pose = ("model", HISTORY_COMMAND) if self.forecaster == "pose_warp" else ()
+        return ("cv_traj", "ctr_traj", *pose)
 
     def setting_model(self, model: nn.Module, setting: EvalSetting) -> nn.Module:
         """The model a setting is scored with: its own checkpoint's, else ``model``."""
