@@ -20,7 +20,7 @@ from renderworld.geometry import pose_matrix
 __all__ = ["TableIndex"]
 
 _BOX_COLUMNS = ("center_x", "center_y", "center_z", "width", "length", "height", "yaw",
-                "occ3d_class")  # fmt: skip
+                "occ3d_class", "instance_index")  # fmt: skip
 
 
 class TableIndex:
@@ -85,7 +85,8 @@ class TableIndex:
 
     def sample_boxes(self, sample_token: str) -> pd.DataFrame:
         """Boxes of a sample in the global frame, columns as ``NuScenesReader.sample_boxes``
-        (``center_*``, ``width``, ``length``, ``height``, ``yaw``, ``occ3d_class``)."""
+        (``center_*``, ``width``, ``length``, ``height``, ``yaw``, ``occ3d_class``,
+        ``instance_index``)."""
         if self._boxes is None:
             self._boxes = self._group_boxes()
         empty = pd.DataFrame({c: np.zeros(0) for c in _BOX_COLUMNS})
@@ -110,6 +111,7 @@ class TableIndex:
                 "width": size[:, 0], "length": size[:, 1], "height": size[:, 2],
                 "yaw": np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)),
                 "occ3d_class": occ.to_numpy(dtype=np.int64),
+                "instance_index": inst.index.get_indexer(ann["instance_token"]).astype(np.int64),
             }
         )  # fmt: skip
         groups = ann.groupby("sample_token", sort=False).indices

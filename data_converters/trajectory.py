@@ -98,12 +98,14 @@ def boxes_in_ego_frame(boxes: pd.DataFrame, ego_to_global: np.ndarray) -> np.nda
     """Annotation boxes (global frame, from ``NuScenesReader.sample_boxes``) in an ego frame.
 
     Args:
-        boxes: DataFrame with center_x, center_y, center_z, length, width, yaw, occ3d_class.
+        boxes: DataFrame with center_x, center_y, center_z, length, width, yaw, occ3d_class,
+            instance_index.
         ego_to_global: [4, 4] ego->global of the target frame.
 
     Returns:
-        [M, 6] float64 ``[x, y, length, width, yaw, occ3d_class]``: centre (m) and heading (rad,
-        relative to the ego x axis, in (-pi, pi]) in the target ego frame.
+        [M, 7] float64 ``[x, y, length, width, yaw, occ3d_class, instance]``: centre (m) and
+        heading (rad, relative to the ego x axis, in (-pi, pi]) in the target ego frame, the
+        instance's index (the same road user has the same one in every frame).
     """
     n = len(boxes)
     out = np.zeros((n, len(BOX_FIELDS)))
@@ -127,4 +129,5 @@ def boxes_in_ego_frame(boxes: pd.DataFrame, ego_to_global: np.ndarray) -> np.nda
     out[:, 3] = boxes["width"].to_numpy(np.float64)
     out[:, 4] = np.arctan2(rel[:, 1, 0], rel[:, 0, 0])
     out[:, 5] = boxes["occ3d_class"].to_numpy(np.float64)
+    out[:, 6] = boxes["instance_index"].to_numpy(np.float64)
     return out

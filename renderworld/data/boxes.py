@@ -15,6 +15,7 @@ __all__ = ["BOX_COLUMNS", "boxes_frame", "yaw_from_quaternions"]
 BOX_COLUMNS = (
     "token",
     "instance_token",
+    "instance_index",
     "category",
     "occ3d_class",
     "center_x",
@@ -48,7 +49,9 @@ def boxes_frame(
 
     Returns:
         DataFrame with :data:`BOX_COLUMNS`: centre (m) and yaw (rad about z) in the global frame,
-        sizes in metres. Empty (with these columns) when ``rows`` is empty.
+        sizes in metres, ``instance_index`` the row of the box's instance in ``instance`` (the
+        same number for the same road user in every sample). Empty (with these columns) when
+        ``rows`` is empty.
     """
     cat_tok = rows["instance_token"].map(instance["category_token"])
     centre = np.asarray(rows["translation"].tolist(), dtype=np.float64).reshape(-1, 3)
@@ -58,6 +61,7 @@ def boxes_frame(
         {
             "token": rows["token"].to_numpy(),
             "instance_token": rows["instance_token"].to_numpy(),
+            "instance_index": instance.index.get_indexer(rows["instance_token"]).astype(np.int64),
             "category": cat_tok.map(category["name"]).to_numpy(),
             "occ3d_class": cat_tok.map(category_occ3d).to_numpy(dtype=np.int64),
             "center_x": centre[:, 0],

@@ -2,8 +2,9 @@
 
 One row per keyframe, one file per split (``<out>/infos_<split>.parquet``); the columns are those
 of docs/formats.md#infos. Numeric arrays are fixed-size float64 list columns (matrices row-major),
-masks fixed-size bool lists, ``future_boxes`` a nested list (7 frames x boxes x 6 numbers
-``[x, y, length, width, yaw, occ3d_class]`` in the keyframe's ego frame). Never pickles.
+masks fixed-size bool lists, ``future_boxes`` a nested list (7 frames x boxes x 7 numbers
+``[x, y, length, width, yaw, occ3d_class, instance]`` in the keyframe's ego frame; ``instance``
+is the road user's index, the same in every frame). Never pickles.
 """
 
 from __future__ import annotations
@@ -33,13 +34,13 @@ __all__ = [
     "infos_file",
 ]
 
-INFOS_SCHEMA_VERSION = 1
+INFOS_SCHEMA_VERSION = 2
 #: Split name that :func:`load_infos` reads as every split of a folder (never a file's name).
 ALL_SPLITS = "all"
 #: Past per-step displacements stored per keyframe (frames t-3..t).
 HISTORY_STEPS = 4
 #: Numbers per stored box, in this order (current ego frame; metres, rad, Occ3D id).
-BOX_FIELDS = ("x", "y", "length", "width", "yaw", "occ3d_class")
+BOX_FIELDS = ("x", "y", "length", "width", "yaw", "occ3d_class", "instance")
 _META_KEY = b"renderworld"
 
 

@@ -19,7 +19,7 @@ __all__ = ["OccSequenceDataset"]
 
 
 def _boxes(cell, frames: range) -> list[np.ndarray]:
-    """[len(frames)] arrays [M_k, 6] from a ``future_boxes`` cell."""
+    """[len(frames)] arrays [M_k, len(BOX_FIELDS)] from a ``future_boxes`` cell."""
     n = len(BOX_FIELDS)
     return [np.asarray(list(cell[k]), dtype=np.float64).reshape(-1, n) for k in frames]
 
@@ -58,8 +58,11 @@ class OccSequenceDataset(InfosDataset):
         future_traj: float32 [F,2], positions of the future frames in that frame (metres).
         future_mask: bool [F].
         command: int64, index into COMMANDS, of the last history frame.
-        future_boxes: float32 [F,M,6] ``[x, y, length, width, yaw, occ3d_class]`` in the last
-            history frame's ego frame; future_boxes_mask bool [F,M].
+        future_boxes: float32 [F,M,7] ``[x, y, length, width, yaw, occ3d_class, instance]`` in
+            the last history frame's ego frame (``instance``: the road user's index, the same
+            in every frame); future_boxes_mask bool [F,M].
+        current_boxes: float32 [M,7] the boxes of the last history frame (the same columns);
+            current_boxes_mask bool [M].
         meta: {scene, sample_tokens [T]}. Windows never cross scenes.
     """
 
@@ -110,7 +113,7 @@ class OccSequenceDataset(InfosDataset):
                     "(occ_path is empty); pass occ_root with exported labels"
                 )
         cells = self.infos["future_boxes"].to_numpy()
-        self._future_boxes = [_boxes(cells[i], range(1, future + 1)) for i in range(len(cells))]
+        self._future_boxes = [_boxes(cells[i], range(0, future + 1)) for i in range(len(cells))]
         most = max((len(b) for boxes in self._future_boxes for b in boxes), default=0)
         if max_boxes is not None and (not isinstance(max_boxes, int) or max_boxes < 0):
             raise ValueError(f"max_boxes: expected an integer >= 0, got {max_boxes!r}")
@@ -156,8 +159,8 @@ class OccSequenceDataset(InfosDataset):
         pos = frame[:, :2]
         disp = np.diff(pos, axis=0)
         m = self.max_boxes
-        boxes = np.zeros((self.future, m, len(BOX_FIELDS)), dtype=np.float32)
-        boxes_mask = np.zeros((self.future, m), dtype=bool)
+        boxes = np.zeros((self.future + 1, m, len(BOX_FIELDS)), dtype=np.float32)
+        boxes_mask = np.zeros((self.future + 1, m), dtype=bool)
         for f, b in enumerate(self._future_boxes[last]):
             if len(b) > m:
                 b = b[np.argsort(np.hypot(b[:, 0], b[:, 1]), kind="stable")[:m]]
@@ -172,8 +175,10 @@ class OccSequenceDataset(InfosDataset):
             "future_traj": torch.from_numpy(pos[self.history :].astype(np.float32)),
             "future_mask": torch.ones(self.future, dtype=torch.bool),
             "command": torch.tensor(COMMANDS.index(self.text["command"][last])),
-            "future_boxes": torch.from_numpy(boxes),
-            "future_boxes_mask": torch.from_numpy(boxes_mask),
+            "future_boxes": torch.from_numpy(boxes[1:]),
+            "future_boxes_mask": torch.from_numpy(boxes_mask[1:]),
+            "current_boxes": torch.from_numpy(boxes[0]),
+            "current_boxes_mask": torch.from_numpy(boxes_mask[0]),
             "meta": {
                 "scene": (self.text["scene_name"][last]),
                 "sample_tokens": [(self.text["sample_token"][r]) for r in rows],

@@ -116,11 +116,12 @@ def test_boxes_in_ego_frame_hand_case():
             "width": [1.9],
             "yaw": [0.0],
             "occ3d_class": [4],
+            "instance_index": [7],
         }
     )
     out = boxes_in_ego_frame(boxes, ego)
-    np.testing.assert_allclose(out, [[3.0, 0.0, 4.5, 1.9, -np.pi / 2, 4.0]], atol=1e-12)
-    assert boxes_in_ego_frame(boxes.iloc[:0], ego).shape == (0, 6)
+    np.testing.assert_allclose(out, [[3.0, 0.0, 4.5, 1.9, -np.pi / 2, 4.0, 7.0]], atol=1e-12)
+    assert boxes_in_ego_frame(boxes.iloc[:0], ego).shape == (0, 7)
 
 
 def test_future_boxes_in_infos_are_in_the_current_ego_frame(left_turn):
@@ -136,5 +137,5 @@ def test_future_boxes_in_infos_are_in_the_current_ego_frame(left_turn):
         i = 2 + k
         dx, dy = 110.0 + 5 * i - x0, 52.0 - y0
         c, s = np.cos(yaw0), np.sin(yaw0)
-        expect = [c * dx + s * dy, -s * dx + c * dy, 4.5, 1.9, 0.5 - yaw0, 4.0]
+        expect = [c * dx + s * dy, -s * dx + c * dy, 4.5, 1.9, 0.5 - yaw0, 4.0, 0.0]
         np.testing.assert_allclose(np.asarray(f[0]), expect, atol=1e-9)

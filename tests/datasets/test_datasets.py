@@ -240,6 +240,12 @@ def test_sequence_items_and_windows(train, left_turn):
     boxes = np.asarray([list(f[0]) for f in last["future_boxes"][1:4]])
     np.testing.assert_allclose(item["future_boxes"][:, 0].numpy(), boxes, rtol=1e-6, atol=1e-5)
     assert item["future_boxes_mask"].all()
+    # The current frame's boxes, and one road user's instance index in every frame.
+    np.testing.assert_allclose(
+        item["current_boxes"][0].numpy(), list(last["future_boxes"][0][0]), rtol=1e-6, atol=1e-5
+    )
+    assert item["current_boxes_mask"][0]
+    assert (item["future_boxes"][:, 0, 6] == item["current_boxes"][0, 6]).all()
 
 
 def test_sequence_reads_exported_pseudo_labels(train, tmp_path):

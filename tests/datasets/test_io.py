@@ -112,7 +112,7 @@ def test_infos_round_trip_sorted(tmp_path):
             scene_index=0,
             frame_index=1,
             sample_token="t1",
-            future_boxes=[[[1, 2, 3, 4, 0.5, 4]]] + [[] for _ in range(6)],
+            future_boxes=[[[1, 2, 3, 4, 0.5, 4, 0]]] + [[] for _ in range(6)],
         ),
         row(scene_name="a", scene_index=0, frame_index=0, sample_token="t0"),
     ]
@@ -120,7 +120,7 @@ def test_infos_round_trip_sorted(tmp_path):
     df = load_infos(tmp_path, "train")
     assert df["sample_token"].tolist() == ["t0", "t1", "t2"]
     assert df.attrs["infos_dir"] == str(tmp_path) and df.attrs["metadata"]["version"] == "v"
-    assert list(df.iloc[1]["future_boxes"][0][0]) == [1, 2, 3, 4, 0.5, 4]
+    assert list(df.iloc[1]["future_boxes"][0][0]) == [1, 2, 3, 4, 0.5, 4, 0]
     assert path.name == "infos_train.parquet"
 
 
@@ -132,7 +132,7 @@ def test_infos_errors(tmp_path):
     with pytest.raises(DatasetError, match=r"x.parquet: infos file not found"):
         load_infos(tmp_path / "x.parquet")
     pd.DataFrame({"a": [1]}).to_parquet(tmp_path / "old.parquet")
-    with pytest.raises(DatasetError, match=r"old.parquet: infos schema version None, expected 1"):
+    with pytest.raises(DatasetError, match=r"old.parquet: infos schema version None, expected 2"):
         load_infos(tmp_path / "old.parquet")
     with pytest.raises(ValueError, match=r"split: required when path is a folder"):
         load_infos(tmp_path)
