@@ -27,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from renderworld.constants import get_grid  # noqa: E402
 from renderworld.sim import build_worlds  # noqa: E402
 from renderworld.sim.closed_loop import (  # noqa: E402
+    make_bundle_planners,
     make_planner,
     run_closed_loop,
     self_check,
@@ -45,7 +46,7 @@ def drive(cfg: DictConfig) -> dict:
     names = [str(n) for n in cfg.planners]
     planners = [make_planner(n) for n in names]
     if cfg.get("planner"):
-        planners.append(make_planner(str(cfg.planner), grid=grid))
+        planners += make_bundle_planners(str(cfg.planner), grid=grid)
     if cfg.get("threads"):
         import torch
 

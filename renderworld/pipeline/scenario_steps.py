@@ -162,7 +162,7 @@ def closed_loop_step(bundle: Path, out: Path, repo: Path) -> Step:
             sys.executable,
             "tools/drive.py",
             "preset=interactions",
-            "planners=[log_replay,cv,ctr,rule_based]",
+            "planners=[log_replay,cv,ctr,rule_based,stop]",
             f"planner={bundle}",
             f"out={out / CLOSED_LOOP}",
             *record,

@@ -47,6 +47,8 @@ import numpy as np
 import torch
 
 from renderworld.constants import COMMANDS, GridSpec
+from renderworld.planning.candidates import CheckConfig
+from renderworld.planning.checked import check_plan
 from renderworld.planning.compiled import is_compile_failure
 from renderworld.planning.pose_warp import (
     default_grid,
@@ -85,6 +87,7 @@ class Planner:
         compile: None or a ``torch.compile`` mode for the decoder.
         pin_memory: pinned host memory for the forecast copy (None: on for CUDA devices).
         world_model_threads: intra-op threads of the world model's part (None: unchanged).
+        check_config: knobs of the forecast-checked plan (None: :class:`CheckConfig`'s).
     """
 
     def __init__(
@@ -99,6 +102,7 @@ class Planner:
         compile: str | None = None,
         pin_memory: bool | None = None,
         world_model_threads: int | None = None,
+        check_config: CheckConfig | None = None,
     ):
         for name in ("encode", "decode"):
             if not callable(getattr(tokenizer, name, None)):
@@ -122,6 +126,12 @@ class Planner:
             raise ValueError(
                 f"world_model_threads: expected None or an int >= 1, got {world_model_threads!r}"
             )
+        if check_config is not None and not isinstance(check_config, CheckConfig):
+            raise TypeError(
+                f"check_config: expected a CheckConfig or None, got {type(check_config).__name__}"
+            )
+        #: Knobs of the forecast-checked plan (``check=True``).
+        self.check_config = check_config or CheckConfig()
         self.world_model_threads = world_model_threads
         self.device = torch.device(device)
         if pin_memory is None:
@@ -221,6 +231,7 @@ class Planner:
         yaws: np.ndarray,
         commands: list[str],
         forecast: bool = True,
+        check: bool = False,
     ) -> list[PlanResult]:
         """Plan with the pose-warp model from raw history frames (shared by :meth:`plan_batch`
         and :class:`renderworld.planning.PlannerSession`; inputs are assumed validated).
@@ -231,6 +242,7 @@ class Planner:
             yaws: [B, H] radians, current ego frame.
             commands: B commands.
             forecast: also forecast the occupancy (False: the pose head only).
+            check: check the plan against the forecast (:mod:`renderworld.planning.checked`).
         """
         b = occ.shape[0]
         s = self.config.future_frames
@@ -249,11 +261,23 @@ class Planner:
                 dec, more = forecast_from_poses(self, occ, hist, poses, cmd)
                 fc = self._to_host(dec.flatten(0, 1), b * s).reshape(b, s, *dec.shape[2:])
                 ms = {k: ms[k] + more[k] for k in ms}
+            checks = [None] * b
+            if check:
+                h_np, p_np = hist.double().cpu().numpy(), poses.double().cpu().numpy()
+                o_np = occ.cpu().numpy()
+                checks = [check_plan(o_np[i], h_np[i], p_np[i], self.grid, self.check_config)
+                          for i in range(b)]  # fmt: skip
+                ms["check"] = sum(c.timings["check"] for c in checks)
         timings = {**ms, "total": 1e3 * (self._sync() - t0), "batch_size": b}
-        return [
-            PlanResult(traj[i], None if fc is None else fc[i], dict(timings), yaw[i])
-            for i in range(b)
-        ]
+        out = []
+        for i, c in enumerate(checks):
+            fc_i = None if fc is None else fc[i]
+            if c is None:
+                out.append(PlanResult(traj[i], fc_i, dict(timings), yaw[i]))
+            else:
+                t = {**timings, **{f"check_{k}": v for k, v in c.timings.items() if k != "check"}}
+                out.append(PlanResult(c.trajectory, fc_i, t, yaw[i], traj[i], c.candidates))
+        return out
 
     def _plan_tokens(
         self,
@@ -319,11 +343,11 @@ class Planner:
         return dec.cpu().numpy()
 
     # ------------------------------------------------------------------ public
-    def plan(self, request: PlanRequest, forecast: bool = True) -> PlanResult:
+    def plan(self, request: PlanRequest, forecast: bool = True, check: bool = False) -> PlanResult:
         """Plan for one request (see :meth:`plan_batch`)."""
-        return self.plan_batch([request], forecast=forecast)[0]
+        return self.plan_batch([request], forecast=forecast, check=check)[0]
 
-    def plan_batch(self, requests, forecast: bool = True) -> list[PlanResult]:
+    def plan_batch(self, requests, forecast: bool = True, check: bool = False) -> list[PlanResult]:
         """Plan for several requests in one batch (their grids must match).
 
         Inputs are never modified: the history is copied before use.
@@ -333,6 +357,10 @@ class Planner:
             forecast: also decode the occupancy forecast; False gives a trajectory-only plan
                 (no occupancy decode, ``occupancy_forecast`` None, the same trajectory; with a
                 pose-warp model: the pose head only, no encode either).
+            check: check the plan against the forecast and drive the best candidate around it
+                (:mod:`renderworld.planning.checked`; pose-warp models): ``trajectory`` is the
+                chosen candidate's, ``raw_trajectory`` the model's own, ``candidates`` every
+                candidate's scores; the forecast and ``yaws`` stay along the model's own plan.
 
         Raises:
             TypeError: a request is not a :class:`PlanRequest`.
@@ -380,7 +408,9 @@ class Planner:
                     )
             yaws = np.stack([as_numpy(r.ego_yaws, "ego_yaws")[-h:] for r in reqs])
             frames = torch.from_numpy(occ).to(self.device)
-            return self._plan_frames(frames, disp, yaws, [r.command for r in reqs], forecast)
+            cmds = [r.command for r in reqs]
+            return self._plan_frames(frames, disp, yaws, cmds, forecast, check)
+        self._refuse_check(check)
         disp = disp.astype(np.float32)
         with torch.inference_mode():
             t0 = self._sync()
@@ -388,6 +418,15 @@ class Planner:
             encode_ms = 1e3 * (self._sync() - t0)
         idx = tokens.indices.reshape(b, h, *tokens.indices.shape[1:])
         return self._plan_tokens(idx, disp, [r.command for r in reqs], forecast, encode_ms)
+
+    def _refuse_check(self, check) -> None:
+        if not isinstance(check, bool):
+            raise TypeError(f"check: expected a bool, got {check!r}")
+        if check and self.kind != "pose_warp":
+            raise ValueError(
+                "check: checking a plan against the forecast needs a pose-warp world model "
+                "(stage.forecaster=pose_warp), this planner's is a token world model"
+            )
 
     def _check_tokens(self, tokens, n: int) -> None:
         cfg = self.config

@@ -1,4 +1,8 @@
-"""Comfort of an episode's 10 Hz states, NAVSIM's way (``pdm_comfort_metrics``), over 4 s windows.
+"""Comfort of 10 Hz ego states, NAVSIM's way (``pdm_comfort_metrics``), over 4 s windows.
+
+The closed loop judges an episode with it (:mod:`renderworld.sim.closed_loop.scores`); the
+forecast-checked planner judges its candidates with the same signals
+(:mod:`renderworld.planning.check`).
 
 NAVSIM judges one 4 s trajectory at 10 Hz (41 states). Here windows of 41 states slide over the
 episode's 10 Hz states, one starting at every plan (every 0.5 s = 5 states) while a whole window
@@ -34,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import savgol_filter
 
-from renderworld.sim.closed_loop.kinematics import SIM_DT
+from renderworld.planning.kinematics import SIM_DT
 
 __all__ = [
     "COMFORT_BOUNDS",
@@ -83,26 +87,31 @@ def comfort_signals(states: np.ndarray, dt: float = SIM_DT) -> dict[str, np.ndar
     """NAVSIM-smoothed comfort quantities [n] of one window (module docstring: the filters).
 
     Args:
-        states: [n, 4] (x, y, yaw, speed) 10 Hz states, scene frame, rear axle; n >= 5.
+        states: [..., n, 4] (x, y, yaw, speed) 10 Hz states, scene frame, rear axle; n >= 5
+            (leading dimensions: several trajectories at once).
         dt: seconds between states.
 
+    Returns:
+        Each quantity [..., n].
+
     Raises:
-        ValueError: naming ``states`` when it is not [n >= 5, 4], or ``dt`` when not positive.
+        ValueError: naming ``states`` when it is not [..., n >= 5, 4], or ``dt`` when not
+            positive.
     """
     states = np.asarray(states, dtype=np.float64)
-    if states.ndim != 2 or states.shape[0] < _MIN_STATES or states.shape[1] != 4:
+    if states.ndim < 2 or states.shape[-2] < _MIN_STATES or states.shape[-1] != 4:
         raise ValueError(
-            f"states: expected shape [n >= {_MIN_STATES}, 4], got {list(states.shape)}"
+            f"states: expected shape [..., n >= {_MIN_STATES}, 4], got {list(states.shape)}"
         )
     if not dt > 0:
         raise ValueError(f"dt: expected a positive step in seconds, got {dt}")
-    n = len(states)
-    v, yaw = states[:, 3], np.unwrap(states[:, 2])
-    lon = np.gradient(v, dt)
-    lat = v * np.gradient(yaw, dt)
+    n = states.shape[-2]
+    v, yaw = states[..., 3], np.unwrap(states[..., 2], axis=-1)
+    lon = np.gradient(v, dt, axis=-1)
+    lat = v * np.gradient(yaw, dt, axis=-1)
 
     def sg(x, window, order, deriv=0):
-        return savgol_filter(x, min(window, n), order, deriv=deriv, delta=dt)
+        return savgol_filter(x, min(window, n), order, deriv=deriv, delta=dt, axis=-1)
 
     out = {
         "lon_accel": sg(lon, n, 2),

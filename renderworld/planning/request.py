@@ -172,9 +172,15 @@ class PlanResult:
         yaws: [S] float32 radians, heading of each predicted future ego frame in the current
             ego frame (the frame ``occupancy_forecast[k]`` is in) for a pose-aware world model;
             None for a token world model, whose frames follow the travel direction.
+        raw_trajectory: [S, 2] float32 metres, the world model's own plan, for a checked plan
+            (``check=True``; ``trajectory`` is then the chosen candidate's); else None.
+        candidates: every candidate of a checked plan and its scores
+            (:class:`renderworld.planning.check.CandidateScores`); else None.
     """
 
     trajectory: np.ndarray
     occupancy_forecast: np.ndarray | None
     timings: dict = field(default_factory=dict)
     yaws: np.ndarray | None = None
+    raw_trajectory: np.ndarray | None = None
+    candidates: object | None = None

@@ -108,7 +108,12 @@ class PlannerSession:
         return ms
 
     def plan(
-        self, ego_displacements, command: str, forecast: bool = True, ego_yaws=None
+        self,
+        ego_displacements,
+        command: str,
+        forecast: bool = True,
+        ego_yaws=None,
+        check: bool = False,
     ) -> PlanResult:
         """Plan from the last ``history_frames`` pushed frames.
 
@@ -121,6 +126,8 @@ class PlannerSession:
             ego_yaws: [T] float radians (T >= ``history_frames``, the last rows are used), the
                 yaw of each history frame in the current ego frame (last 0); required by a
                 pose-warp world model, ignored by a token world model.
+            check: check the plan against the forecast (:meth:`Planner.plan_batch`; pose-warp
+                world models only).
 
         Returns:
             :class:`PlanResult`; ``timings["encode"]`` is the encode time of the pushes since
@@ -140,6 +147,8 @@ class PlannerSession:
         check_command(command)
         if not isinstance(forecast, bool):
             raise TypeError(f"forecast: expected a bool, got {forecast!r}")
+        if not isinstance(check, bool):
+            raise TypeError(f"check: expected a bool, got {check!r}")
         if self.planner.kind == "pose_warp":
             if ego_yaws is None:
                 raise ValueError(
@@ -151,7 +160,9 @@ class PlannerSession:
             yaws = check_yaws(yaws, n)[-h:]
             frames = torch.stack(list(self._tokens))[None]  # [1, H, X, Y, Z]
             self._last_encode_ms = 0.0
-            return self.planner._plan_frames(frames, disp[None], yaws[None], [command], forecast)[0]
+            plan = self.planner._plan_frames
+            return plan(frames, disp[None], yaws[None], [command], forecast, check)[0]
+        self.planner._refuse_check(check)
         history = torch.stack(list(self._tokens))[None]  # [1, H, G, h, w]
         encode_ms, self._last_encode_ms = self._last_encode_ms, 0.0
         return self.planner._plan_tokens(

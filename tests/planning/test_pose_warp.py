@@ -405,3 +405,39 @@ def test_world_model_threads_are_used_and_restored(kind):
     for bad in (0, 1.0, "2"):
         with pytest.raises(ValueError, match="world_model_threads: expected None or an int >= 1"):
             Planner(ref.tokenizer, ref.world_model, world_model_threads=bad)
+
+
+@pytest.mark.parametrize("forecast", [False, True])
+def test_checked_plan_through_the_api_and_the_session(forecast):
+    from renderworld.planning.check import CandidateScores
+
+    planner = make_planner()
+    occ, disp, yaws = scene(H)
+    req = PlanRequest(occ, disp, "left", ego_yaws=yaws)
+    raw = planner.plan(req, forecast=forecast)
+    checked = planner.plan(req, forecast=forecast, check=True)
+    assert raw.raw_trajectory is None and raw.candidates is None
+    np.testing.assert_array_equal(checked.raw_trajectory, raw.trajectory)
+    assert isinstance(checked.candidates, CandidateScores)
+    best = checked.candidates.best
+    np.testing.assert_allclose(checked.trajectory, checked.candidates.waypoints[best], atol=1e-6)
+    np.testing.assert_array_equal(checked.yaws, raw.yaws)  # the forecast's frames: the model's
+    if forecast:
+        np.testing.assert_array_equal(checked.occupancy_forecast, raw.occupancy_forecast)
+    assert checked.timings["check"] > 0 and "check_scoring" in checked.timings
+    session = PlannerSession(planner)
+    for frame in occ:
+        session.push(frame)
+    streamed = session.plan(disp, "left", forecast=forecast, ego_yaws=yaws, check=True)
+    np.testing.assert_array_equal(streamed.trajectory, checked.trajectory)
+
+
+def test_a_token_planner_refuses_to_check():
+    from tests.planning.test_api import make_planner as token_planner
+    from tests.planning.test_api import make_request
+
+    planner = token_planner()
+    with pytest.raises(ValueError, match="check: checking a plan against the forecast needs"):
+        planner.plan(make_request(), check=True)
+    with pytest.raises(TypeError, match="check: expected a bool"):
+        planner.plan(make_request(), check=1)

@@ -12,7 +12,11 @@ from torch.utils.data import DataLoader
 from renderworld.constants import FREE_ID
 from renderworld.training import evaluate, train
 from renderworld.training.stages.world_model import WorldModelStage
-from renderworld.training.stages.world_model.report import HISTORY_COMMAND
+from renderworld.training.stages.world_model.report import (
+    CHECKED,
+    CHECKED_HISTORY_COMMAND,
+    HISTORY_COMMAND,
+)
 from renderworld.training.stages.world_model.report import REPORT_BASENAME as REPORT
 from renderworld.world.forecast import warp_current
 from renderworld.world.pose import PoseWarpWorldModel
@@ -54,13 +58,14 @@ def test_changing_the_future_ground_truth_leaves_the_forecast_unchanged(
     yaw, yaw2 = {}, {}
     fc, traj = stage.forecast(model, batch, setting, None, yaw)
     fc2, traj2 = stage.forecast(model, perturb_future(batch, HISTORY), setting, None, yaw2)
-    assert set(yaw) == set(yaw2) == {"model", HISTORY_COMMAND, "cv_traj", "ctr_traj"}
+    planned = {"model", HISTORY_COMMAND, CHECKED, CHECKED_HISTORY_COMMAND, "cv_traj", "ctr_traj"}
+    assert set(yaw) == set(yaw2) == planned
     for k in yaw:  # the planned headings scored beside L2
         assert torch.equal(yaw[k], yaw2[k]), k
     for k in ("model", "model_warp", "model_net", HISTORY_COMMAND, "copy_paste", "warp_cv",
               "warp_ctr", "warp_object_cv"):  # fmt: skip
         assert torch.equal(fc[k], fc2[k]), k
-    for k in ("model", HISTORY_COMMAND, "cv_traj", "ctr_traj"):
+    for k in planned:  # the checked plans too: they read the model's own forecast only
         assert torch.equal(traj[k], traj2[k]), k
     # The history does drive it (the test above could not pass by ignoring every input).
     moved = copy.deepcopy(batch)

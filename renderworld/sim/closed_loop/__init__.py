@@ -8,8 +8,8 @@ the ego is at fault for (``contacts``) or leaving the road. Scores follow NAVSIM
 (``scores``, ``comfort``). ``tools/drive.py`` runs it; docs/closed_loop.md explains it.
 """
 
+from renderworld.planning.comfort import comfort_signals, comfort_violations, comfort_windows
 from renderworld.sim.closed_loop.boxes import Contact, SceneBoxes, contacts_at
-from renderworld.sim.closed_loop.comfort import comfort_signals, comfort_violations, comfort_windows
 from renderworld.sim.closed_loop.contacts import LaneMap, contact_at_fault, contact_kind, is_agent
 from renderworld.sim.closed_loop.episode import END_REASONS, Episode, run_episode
 from renderworld.sim.closed_loop.kinematics import SIM_DT, EgoState, KinematicLimits, track_plan
@@ -22,6 +22,8 @@ from renderworld.sim.closed_loop.planners import (
     LogReplay,
     Observation,
     RuleBased,
+    Stop,
+    make_bundle_planners,
     make_planner,
 )
 from renderworld.sim.closed_loop.report import summary_markdown, write_outputs
@@ -52,6 +54,7 @@ __all__ = [
     "Observation",
     "OccupancyRenderer",
     "RuleBased",
+    "Stop",
     "SceneBoxes",
     "add_best_progress",
     "aggregate",
@@ -63,6 +66,7 @@ __all__ = [
     "contacts_at",
     "history_inputs",
     "is_agent",
+    "make_bundle_planners",
     "make_planner",
     "pdms",
     "route_command",

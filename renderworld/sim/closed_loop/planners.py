@@ -12,8 +12,12 @@ Every planner answers :meth:`plan` with the planner API's trajectory convention
 * ``rule_based``: **privileged reference** (:class:`RuleBased`): the logged ego's path (the
   route's centre line) at an IDM speed for the first object on or near it, from the true agent
   boxes and velocities (what a map and a perfect detector would give), nuPlan's PDM-Closed idea.
+* ``stop``: brakes at once and stays stopped (all waypoints at the current position): the score
+  must punish a planner that never goes anywhere.
 * a bundle (:class:`BundlePlanner`): ``load_planner`` + ``PlannerSession``, occupancy rendered
-  at the ego's actual pose on the bundle's grid.
+  at the ego's actual pose on the bundle's grid; the row ``world_model`` drives the plan checked
+  against the model's own forecast (``check=True``, :mod:`renderworld.planning.checked`), the
+  row ``world_model_raw`` the model's own plan.
 """
 
 from __future__ import annotations
@@ -35,8 +39,10 @@ __all__ = [
     "ConstantVelocity",
     "ConstantTurnRate",
     "RuleBased",
+    "Stop",
     "BundlePlanner",
     "make_planner",
+    "make_bundle_planners",
 ]
 
 
@@ -116,6 +122,15 @@ class ConstantTurnRate(_Reference):
         xy -= xy[-1]
         poses = np.concatenate([xy, np.asarray(obs.yaws, np.float64)[:, None]], 1)
         return constant_turn_rate_trajectory(poses)
+
+
+class Stop(_Reference):
+    """Every waypoint at the current position: brake as hard as the car can and stay."""
+
+    name = "stop"
+
+    def plan(self, obs: Observation) -> np.ndarray:
+        return np.zeros((FUTURE_FRAMES, 2))
 
 
 class RuleBased(_Reference):
@@ -223,11 +238,15 @@ class BundlePlanner:
         planner: a loaded :class:`renderworld.planning.Planner` (``load_planner(path)``).
         name: the row's name in the tables.
         grid: the run's grid (None: the bundle's); a bundle on another grid is refused.
+        check: drive the plan checked against the model's forecast (``check=True`` of
+            :meth:`renderworld.planning.PlannerSession.plan`); False: the model's own plan.
     """
 
     privileged = False
 
-    def __init__(self, planner, name: str = "world_model", grid: GridSpec | None = None):
+    def __init__(
+        self, planner, name: str = "world_model", grid: GridSpec | None = None, check: bool = True
+    ):
         from renderworld.planning import Planner, PlannerSession
 
         if not isinstance(planner, Planner):
@@ -243,6 +262,7 @@ class BundlePlanner:
             )
         self.name = name
         self.planner = planner
+        self.check = bool(check)
         self.grid = planner.grid
         self._session = PlannerSession(planner)
         self._pushed = -1
@@ -259,8 +279,9 @@ class BundlePlanner:
                 self._session.push(occ)
                 self._pushed = first + i
         result = self._session.plan(
-            obs.displacements, obs.command, forecast=False, ego_yaws=np.asarray(obs.yaws)
-        )
+            obs.displacements, obs.command, forecast=False, ego_yaws=np.asarray(obs.yaws),
+            check=self.check,
+        )  # fmt: skip
         return np.asarray(result.trajectory, dtype=np.float64)
 
 
@@ -269,21 +290,41 @@ REFERENCE_PLANNERS = {
     "cv": ConstantVelocity,
     "ctr": ConstantTurnRate,
     "rule_based": RuleBased,
+    "stop": Stop,
 }
 
 
-def make_planner(name: str, grid: GridSpec | None = None):
-    """A reference planner by name, or a bundle planner from a ``planner.pt`` path."""
-    if name in REFERENCE_PLANNERS:
-        return REFERENCE_PLANNERS[name]()
+def make_bundle_planners(
+    path, grid: GridSpec | None = None, name: str = "world_model"
+) -> list[BundlePlanner]:
+    """The rows of a planner bundle: ``<name>`` (the checked plan) and ``<name>_raw`` (the
+    model's own plan), sharing one loaded bundle.
+
+    Raises:
+        ValueError: naming ``planner`` when the path is not a ``*.pt`` file.
+    """
     from pathlib import Path
 
     from renderworld.planning import load_planner
 
-    path = Path(name)
+    path = Path(path)
     if path.suffix != ".pt":
+        raise ValueError(f"planner: expected a planner bundle path (*.pt), got {str(path)!r}")
+    bundle = load_planner(path)
+    return [
+        BundlePlanner(bundle, name=name, grid=grid, check=True),
+        BundlePlanner(bundle, name=f"{name}_raw", grid=grid, check=False),
+    ]
+
+
+def make_planner(name: str, grid: GridSpec | None = None):
+    """A reference planner by name, or a bundle's checked planner from a ``planner.pt`` path
+    (:func:`make_bundle_planners` gives both of its rows)."""
+    if name in REFERENCE_PLANNERS:
+        return REFERENCE_PLANNERS[name]()
+    if not str(name).endswith(".pt"):
         raise ValueError(
             f"planners: expected one of {sorted(REFERENCE_PLANNERS)} or a planner bundle path "
             f"(*.pt), got {name!r}"
         )
-    return BundlePlanner(load_planner(path), name="world_model", grid=grid)
+    return make_bundle_planners(name, grid)[0]

@@ -22,7 +22,7 @@ Per episode (0/1 unless said), from the 10 Hz states:
   the ego straddles lanes (a junction included) or is off the road, not behind (within 150
   degrees). Objects of earlier contacts the ego was not at fault for are left out.
 * ``C`` (comfort): 0 when a NAVSIM bound is exceeded in some 4 s window
-  (:mod:`renderworld.sim.closed_loop.comfort`: windows, filters and bounds).
+  (:mod:`renderworld.planning.comfort`: windows, filters and bounds).
 * ``PDMS = NC x DAC x (5 TTC + 5 EP + 2 C) / 12`` (NAVSIM's PDM score with the multipliers and
   weights it uses); 0 for an episode the planner failed (``planner_error``).
 """
@@ -31,9 +31,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from renderworld.planning.comfort import COMFORT_BOUNDS, comfort_violations
 from renderworld.sim.agents import Path
 from renderworld.sim.closed_loop.boxes import SceneBoxes, ego_on_road
-from renderworld.sim.closed_loop.comfort import COMFORT_BOUNDS, comfort_violations
 from renderworld.sim.closed_loop.contacts import (
     AHEAD_ANGLE,
     BEHIND_ANGLE,

@@ -318,6 +318,8 @@ def setting_metrics(
         p = f"{prefix}{m}"
         if has_occ and f"{p}/full/confusion" not in stats:
             continue  # a variant of another forecaster
+        if not has_occ and f"{p}/plan/err_sum" not in stats:
+            continue  # a plan of another forecaster
         if has_occ:
             full = forecast_from_stats(stats, f"{p}/full", horizons)
             cam = forecast_from_stats(stats, f"{p}/cam", horizons, "camera")

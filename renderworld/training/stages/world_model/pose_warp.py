@@ -20,11 +20,13 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any, Protocol
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
 from renderworld.constants import COMMANDS
 from renderworld.tokenizer import Tokens
+from renderworld.training.stages.world_model.report import CHECKED, CHECKED_HISTORY_COMMAND
 from renderworld.training.stages.world_model.windows import frame_keys
 from renderworld.world.forecast import pose_warp_forecast, warp_current
 from renderworld.world.pose import align_history, pose_loss
@@ -37,6 +39,8 @@ if TYPE_CHECKING:
 __all__ = [
     "PoseWarpStage",
     "POSE_METHODS",
+    "POSE_PLANNERS",
+    "checked_plans",
     "encode_frames",
     "mirror_command",
     "mirror_poses",
@@ -47,6 +51,8 @@ __all__ = [
 
 #: Forecast rows of the pose-warp model beside ``model`` (variants the note compares).
 POSE_METHODS = ("model_warp", "model_net")
+#: Planning rows only the pose-warp model has: its plan checked against its forecast.
+POSE_PLANNERS = (CHECKED, CHECKED_HISTORY_COMMAND)
 _CHUNK = 16
 
 
@@ -299,3 +305,31 @@ def pose_forecast(
     codec = _StageCodec(stage, batch, setting, device)
     fc = pose_warp_forecast(model, history, batch["history_poses"], poses, cmd, stage.grid, codec)
     return {"model": fc.forecast, "model_warp": fc.warp, "model_net": fc.net}, poses
+
+
+def checked_plans(
+    stage: PoseWarpStage, batch: dict, setting: EvalSetting, poses: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The model's plans checked against its own forecast, as a planner bundle drives them
+    (:func:`renderworld.planning.checked.check_plan`, default knobs).
+
+    Args:
+        stage: the stage (its history length and grid).
+        batch: a collated batch (the setting's history occupancy and ``history_poses`` read).
+        setting: whose history occupancy the forecast is made of.
+        poses: [B, S, 3] the model's predicted poses.
+
+    Returns:
+        (trajectories [B, S, 2] metres, headings [B, S] radians), current ego frame, on the
+        device and in the dtype of ``poses``.
+    """
+    from renderworld.planning.checked import check_plan
+
+    h = stage.settings.history
+    occ = batch[setting.inputs][:, :h].cpu().numpy()
+    hist = batch["history_poses"].double().cpu().numpy()
+    plan = poses.double().cpu().numpy()
+    out = [check_plan(occ[i], hist[i], plan[i], stage.grid) for i in range(len(plan))]
+    traj = torch.from_numpy(np.stack([c.trajectory for c in out])).to(poses)
+    yaws = torch.from_numpy(np.stack([c.yaws for c in out])).to(poses)
+    return traj, yaws

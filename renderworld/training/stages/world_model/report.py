@@ -27,6 +27,8 @@ from renderworld.constants import FREE_ID, OCC3D_CLASSES
 from renderworld.metrics import PlanningMetric
 
 __all__ = [
+    "CHECKED",
+    "CHECKED_HISTORY_COMMAND",
     "HISTORY_COMMAND",
     "METHODS",
     "REPORT_BASENAME",
@@ -41,10 +43,15 @@ __all__ = [
 
 #: The model given the command derived from the history instead of the GT future.
 HISTORY_COMMAND = "model_history_command"
+#: The model's plan checked against its own forecast (renderworld.planning.checked), with the
+#: GT-derived command and with the command from the history.
+CHECKED, CHECKED_HISTORY_COMMAND = "model_checked", "model_checked_history_command"
 #: (metric prefix, table label, has an occupancy forecast, has a trajectory)
 METHODS: tuple[tuple[str, str, bool, bool], ...] = (
     ("model", "model", True, True),
     (HISTORY_COMMAND, "model, command from history", True, True),
+    (CHECKED, "model, checked plan", False, True),
+    (CHECKED_HISTORY_COMMAND, "model, checked plan, command from history", False, True),
     ("model_warp", "model, warp only", True, False),
     ("model_net", "model, tokens only", True, False),
     ("copy_paste", "Copy&Paste", True, False),
@@ -97,7 +104,10 @@ _LEGEND_COMMAND = (
 _LEGEND_VARIANTS = (
     "model, warp only = the current frame warped along the model's predicted poses; model, "
     "tokens only = the token network's decoded forecast; model = the warp where its source "
-    "lies on the current grid, the tokens elsewhere."
+    "lies on the current grid, the tokens elsewhere. model, checked plan = the best of the "
+    "candidates around the model's plan scored against its own forecast (collisions with the "
+    "forecast movers and obstacles, drivable area, progress, time to collision, comfort; "
+    "renderworld.planning.checked), the trajectory a planner bundle drives with check=True."
 )
 _LEGEND_NAN = (
     "nan: undefined — no class present in GT or forecast at that horizon, or no window with a "

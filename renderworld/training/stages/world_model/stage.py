@@ -55,7 +55,11 @@ from renderworld.training.stages.world_model.checkpoints import CheckpointModels
 from renderworld.training.stages.world_model.frozen_tokenizers import FrozenTokenizers
 from renderworld.training.stages.world_model.pose_warmup import warm_up_pose_head
 from renderworld.training.stages.world_model.references import reference_forecasts
-from renderworld.training.stages.world_model.report import HISTORY_COMMAND
+from renderworld.training.stages.world_model.report import (
+    CHECKED,
+    CHECKED_HISTORY_COMMAND,
+    HISTORY_COMMAND,
+)
 from renderworld.training.stages.world_model.settings import (
     EvalSetting,
     eval_settings,
@@ -113,6 +117,12 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         """Forecast rows of this evaluation: the model (and its variants) and the baselines."""
         extra = wmp.POSE_METHODS if self.forecaster == "pose_warp" else ()
         return tuple(m for m in wme.FORECASTERS if m not in wmp.POSE_METHODS or m in extra)
+
+    @property
+    def planners(self) -> tuple[str, ...]:
+        """Planning rows of this evaluation (the checked plans with the pose head only)."""
+        extra = wmp.POSE_PLANNERS if self.forecaster == "pose_warp" else ()
+        return tuple(p for p in wme.PLANNERS if p not in wmp.POSE_PLANNERS or p in extra)
 
     # ------------------------------------------------------------------ Stage API
     def lr_scales(self) -> dict[str, float]:
@@ -254,8 +264,11 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
                 fc, poses = wmp.pose_forecast(self, model, {**batch, "command": command}, setting)
                 fc = fc if name == "model" else {name: fc["model"]}
                 traj = poses[..., :2]
+                checked = CHECKED if name == "model" else CHECKED_HISTORY_COMMAND
+                trajs[checked], yaw = wmp.checked_plans(self, batch, setting, poses)
+                trajs[checked] = trajs[checked].to(disp.dtype)
                 if headings is not None:
-                    headings[name] = poses[..., 2]
+                    headings[name], headings[checked] = poses[..., 2], yaw
             else:
                 if tokens is None:
                     tokens = self.window_tokens(
@@ -289,8 +302,8 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
     def _heading_planners(self) -> tuple[str, ...]:
         """Planners whose plan carries a heading (the model's, both commands, with the pose
         head only)."""
-        pose = ("model", HISTORY_COMMAND) if self.forecaster == "pose_warp" else ()
-        return ("cv_traj", "ctr_traj", *pose)
+        pose = ("model", HISTORY_COMMAND, *wmp.POSE_PLANNERS)
+        return ("cv_traj", "ctr_traj", *(pose if self.forecaster == "pose_warp" else ()))
 
     def setting_model(self, model: nn.Module, setting: EvalSetting) -> nn.Module:
         """The model a setting is scored with: its own checkpoint's, else ``model``."""
@@ -312,7 +325,7 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         plan: dict[str, PlanningMetric] = {}
         for s in self.eval_settings:
             stats.update(wme.empty_forecast_stats(f, device, s.prefix, self.forecasters))
-            for p in wme.PLANNERS:
+            for p in self.planners:
                 plan[f"{s.prefix}{p}"] = PlanningMetric(f, hs, occupancy_grid=self.grid)
                 for split in wme.SPLITS:
                     for name, shape in (("l2_sum", (f,)), ("l2_count", (f,)), ("windows", ())):
@@ -359,7 +372,7 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
                 wme.add_forecast_stats(
                     stats, forecasts, target, target_mask, valid, s.prefix, turning
                 )
-                mine = {p: plan[f"{s.prefix}{p}"] for p in wme.PLANNERS}
+                mine = {p: plan[f"{s.prefix}{p}"] for p in self.planners}
                 wme.update_planning(mine, trajs, batch, target, valid)
                 wme.add_split_l2(stats, trajs, batch["future_traj"], valid, turning, s.prefix)
         for k, vals in sums.items():

@@ -1,0 +1,266 @@
+"""Candidate plans around a learned plan: its path, shifted sideways, at several speed profiles.
+
+PDM-Closed (nuPlan, NAVSIM) proposes a few trajectories around the lane centre line — lateral
+offsets times IDM target speeds — and drives the best one. Here the centre line is the world
+model's own plan (its pose head's path, extended straight ahead beyond its last waypoint), so
+the candidates answer the question "the model wants to go there: how fast, and a little to
+which side, is safe?". For each lateral offset (reached smoothly over :attr:`CheckConfig.ramp_m`
+of the path) there are:
+
+* ``plan``: the learned plan's own waypoints, shifted by the offset, where it keeps its distance
+  to the leader (below); else held back to where an IDM run at the plan's top speed behind that
+  leader would be;
+* ``idm``: the Intelligent Driver Model (Treiber) along the path towards a fraction of the
+  plan's speed, behind the nearest obstacle of the forecast in the ego's corridor (the leader:
+  the first forecast mover or static obstacle whose points enter the corridor, the ego box
+  widened by :attr:`CheckConfig.corridor_margin_m` on each side, before the ego would have
+  passed that place; it moves along the path at its velocity's component, never backwards);
+* ``brake``: a constant deceleration to a stop along the path.
+
+Frames: the current ego frame (x forward, y left; metres, seconds, m/s); the ego starts at the
+origin, heading 0, at its current speed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from renderworld.constants import EGO_CENTRE_OFFSET, EGO_LENGTH, EGO_WIDTH, KEYFRAME_DT
+from renderworld.planning.scene import ForecastScene
+
+__all__ = ["CheckConfig", "Candidates", "PlanPath", "leader", "make_candidates"]
+
+_FRONT = EGO_CENTRE_OFFSET + EGO_LENGTH / 2  # rear axle -> front bumper, metres
+
+
+@dataclass(frozen=True)
+class CheckConfig:
+    """Knobs of the forecast-checked planner (chosen on the development scenes, docs/planner.md).
+
+    Attributes:
+        offsets_m: lateral offsets of the path (left +), metres; the first is preferred on ties.
+        speed_fractions: IDM target speeds, fractions of the plan's top speed.
+        brake_decels: decelerations of the ``brake`` candidates, m/s^2.
+        a_max: IDM maximum acceleration, m/s^2.
+        b: IDM comfortable deceleration, m/s^2.
+        s0: IDM standstill gap to the leader, metres.
+        headway: IDM time headway, seconds.
+        idm_min_accel: IDM's braking is clipped here, m/s^2 (negative).
+        corridor_margin_m: corridor half-width beyond the ego's, metres.
+        ramp_m: path length over which a lateral offset is reached, metres (at least).
+        extend_m: straight extension of the path beyond the plan's last waypoint, metres.
+        box_margin_m: the ego box is widened by this much on each side for collisions, metres.
+        drivable_margin_m: the ego box points checked for the drivable area lie this far out.
+        ttc_horizon_s: time-to-collision horizon, seconds.
+        progress_floor_m: below this much planned progress every candidate's EP is 1.
+    """
+
+    offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
+    speed_fractions: tuple[float, ...] = (1.0, 0.75, 0.5, 0.25)
+    brake_decels: tuple[float, ...] = (3.0, 6.0)
+    a_max: float = 1.5
+    b: float = 3.0
+    s0: float = 2.0
+    headway: float = 1.5
+    idm_min_accel: float = -8.0
+    corridor_margin_m: float = 0.3
+    ramp_m: float = 12.0
+    extend_m: float = 60.0
+    box_margin_m: float = 0.2
+    drivable_margin_m: float = 0.0
+    ttc_horizon_s: float = 1.0
+    progress_floor_m: float = 2.0
+
+
+class PlanPath:
+    """A polyline path parametrised by arc length (metres), current ego frame.
+
+    Args:
+        points: [K, 2] metres, starting at the ego (duplicates dropped).
+        extend_m: straight extension beyond the last point, along the last segment (or
+            ``heading`` when the points do not move).
+        heading: direction (radians) when the path has no length.
+    """
+
+    def __init__(self, points: np.ndarray, extend_m: float, heading: float = 0.0):
+        pts = np.asarray(points, dtype=np.float64)
+        keep = np.r_[True, np.hypot(*np.diff(pts, axis=0).T) > 1e-3]
+        pts = pts[keep]
+        if len(pts) >= 2:
+            d = pts[-1] - pts[-2]
+            heading = float(np.arctan2(d[1], d[0]))
+        end = pts[-1] + extend_m * np.array([np.cos(heading), np.sin(heading)])
+        self.xy = np.concatenate([pts, end[None]])
+        seg = np.hypot(*np.diff(self.xy, axis=0).T)
+        self.s = np.r_[0.0, np.cumsum(seg)]
+        self.heading = np.arctan2(*np.diff(self.xy, axis=0)[:, ::-1].T)
+        self.length = float(self.s[-1])
+
+    def at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(positions [..., 2], headings [...]) at arc lengths ``s`` (clipped to the path)."""
+        s = np.clip(np.asarray(s, dtype=np.float64), 0.0, self.length)
+        k = np.clip(np.searchsorted(self.s, s, side="right") - 1, 0, len(self.heading) - 1)
+        u = (s - self.s[k])[..., None]
+        h = self.heading[k]
+        return self.xy[k] + u * np.stack([np.cos(h), np.sin(h)], -1), h
+
+    def offset(self, s: np.ndarray, d: float, ramp_m: float) -> np.ndarray:
+        """Positions [..., 2] at ``s`` shifted ``d`` metres to the left, reached smoothly (a
+        smoothstep over the first ``ramp_m`` metres)."""
+        xy, h = self.at(s)
+        u = np.clip(np.asarray(s) / max(ramp_m, 1e-6), 0.0, 1.0)
+        w = d * u * u * (3 - 2 * u)
+        return xy + w[..., None] * np.stack([-np.sin(h), np.cos(h)], -1)
+
+
+@dataclass
+class Candidates:
+    """Candidate plans.
+
+    Attributes:
+        waypoints: [N, S, 2] metres at +dt ... +S dt.
+        kind: N names (``plan``, ``idm``, ``brake``).
+        offset_m: [N] lateral offset, metres.
+        speed: [N] the IDM target speed (m/s), the plan's top speed (``plan``) or the
+            deceleration (m/s^2, ``brake``).
+    """
+
+    waypoints: np.ndarray
+    kind: list
+    offset_m: np.ndarray
+    speed: np.ndarray
+
+
+def leader(
+    scene: ForecastScene, path: PlanPath, d: float, speed: float, cfg: CheckConfig, horizon: float
+) -> tuple[float, float]:
+    """(gap metres, speed along the path m/s) of the IDM leader on a shifted path, or
+    (inf, 0) when the corridor stays clear (module docstring: which obstacle leads).
+
+    Args:
+        scene: the forecast scene.
+        path: the path; d: its lateral offset (metres); speed: the ego's speed (m/s).
+        cfg: the knobs; horizon: seconds of forecast to look at.
+    """
+    s = _FRONT + np.arange(0.0, min(path.length, 80.0), 0.5)
+    centre = path.offset(s - _FRONT, d, cfg.ramp_m)
+    _, hd = path.at(s)
+    half = EGO_WIDTH / 2 + cfg.corridor_margin_m
+    taus = np.arange(0.0, horizon + 1e-9, 0.5)
+    pts = scene.points_at(np.r_[taus, taus + 0.1])  # [2 T, P, 2]: positions, 0.1 s later
+    lo, hi = centre.min(0) - half, centre.max(0) + half
+    near = ((pts >= lo) & (pts <= hi)).all(-1).any(0)  # points that ever come near the corridor
+    idx = np.flatnonzero(near)
+    if not len(idx):
+        return (np.inf, 0.0)
+    n = len(taus)
+    p = pts[:n, idx]  # [T, Q, 2]
+    vel = (pts[n:, idx] - p) / 0.1
+    dist = np.hypot(p[..., None, 0] - centre[:, 0], p[..., None, 1] - centre[:, 1])  # [T, Q, K]
+    k = dist.argmin(-1)
+    inside = np.take_along_axis(dist, k[..., None], -1)[..., 0] <= half  # [T, Q]
+    tau = taus[:, None]
+    passed = (tau > 0) & (speed * tau > s[k] - _FRONT + EGO_LENGTH + 2.0)
+    ok = inside & ~passed  # the ego will have passed places it reaches first
+    if not ok.any():
+        return (np.inf, 0.0)
+    along = np.maximum(np.cos(hd[k]) * vel[..., 0] + np.sin(hd[k]) * vel[..., 1], 0.0)
+    gap = np.where(ok, s[k] - _FRONT - along * tau, np.inf)
+    t_i, q_i = np.unravel_index(int(np.argmin(gap)), gap.shape)
+    return (max(float(gap[t_i, q_i]), 0.05), float(along[t_i, q_i]))
+
+
+def _idm_arc(v_now, targets, lead, cfg, steps, dt) -> np.ndarray:
+    """[F, steps] arc lengths (metres) at each waypoint of IDM runs towards each target speed
+    [F] (m/s) behind ``lead`` (gap, speed)."""
+    f = len(targets)
+    v = np.full(f, v_now)
+    s = np.zeros(f)
+    v0 = np.maximum(np.asarray(targets, dtype=np.float64), 0.1)
+    gap0, v_l = lead
+    sub = 0.1
+    n_sub = int(round(dt / sub))
+    out = np.empty((f, steps))
+    for k in range(steps):
+        for j in range(n_sub):
+            t = (k * n_sub + j) * sub
+            acc = cfg.a_max * (1 - (v / v0) ** 4)
+            if np.isfinite(gap0):
+                gap = np.maximum(gap0 + v_l * t - s, 0.05)
+                dv = v - v_l
+                s_star = cfg.s0 + v * cfg.headway + v * dv / (2 * np.sqrt(cfg.a_max * cfg.b))
+                acc = acc - cfg.a_max * (np.maximum(s_star, 0.0) / gap) ** 2
+            acc = np.maximum(acc, cfg.idm_min_accel)
+            v_new = np.maximum(v + acc * sub, 0.0)
+            s = s + 0.5 * (v + v_new) * sub
+            v = v_new
+        out[:, k] = s
+    return out
+
+
+def _brake_waypoints(path, d, v_now, decels, cfg, steps, dt) -> np.ndarray:
+    """[F, steps, 2] waypoints of constant decelerations [F] (m/s^2) to a stop."""
+    t = np.arange(1, steps + 1) * dt
+    a = np.asarray(decels, dtype=np.float64)[:, None]
+    t_stop = v_now / a
+    tt = np.minimum(t[None], t_stop)
+    s = v_now * tt - 0.5 * a * tt * tt
+    return path.offset(s, d, cfg.ramp_m)
+
+
+def make_candidates(
+    plan: np.ndarray,
+    plan_yaws: np.ndarray,
+    speed: float,
+    scene: ForecastScene,
+    cfg: CheckConfig,
+    dt: float = KEYFRAME_DT,
+) -> Candidates:
+    """Candidates around a learned plan (module docstring).
+
+    Args:
+        plan: [S, 2] the learned plan's positions at +dt ... +S dt, metres.
+        plan_yaws: [S] its headings, radians (the path's direction when it does not move).
+        speed: the ego's current speed, m/s.
+        scene: the forecast scene (IDM leaders).
+        cfg: the knobs.
+        dt: seconds between waypoints.
+
+    Returns:
+        :class:`Candidates`, offsets in ``cfg.offsets_m`` order, each offset's ``plan`` first,
+        then the IDM runs (fastest first), then the brakes (gentlest first).
+    """
+    plan = np.asarray(plan, dtype=np.float64)
+    steps = plan.shape[0]
+    path = PlanPath(np.concatenate([np.zeros((1, 2)), plan]), cfg.extend_m,
+                    float(np.asarray(plan_yaws)[-1]))  # fmt: skip
+    step_speed = np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), plan]), axis=0).T) / dt
+    top = float(step_speed.max())
+    targets = [fr * top for fr in cfg.speed_fractions]
+    # Arc length of each waypoint along the path: the path is the polyline through them.
+    s_plan = np.cumsum(np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), plan]), axis=0).T))
+    horizon = steps * dt + cfg.ttc_horizon_s
+    wps, kinds, offs, spd = [], [], [], []
+    for d in cfg.offsets_m:
+        lead = leader(scene, path, d, speed, cfg, horizon)
+        s_cap = s_plan
+        if np.isfinite(lead[0]):  # the plan, no farther than IDM would go behind the leader
+            s_cap = np.minimum(s_plan, _idm_arc(speed, [max(top, speed)], lead, cfg, steps, dt)[0])
+        as_planned = d == 0 and s_cap is s_plan  # the learned waypoints themselves, exactly
+        wps.append(plan[None] if as_planned else path.offset(s_cap, d, cfg.ramp_m)[None])
+        kinds.append("plan")
+        offs.append(d)
+        spd.append(top)
+        if targets:
+            wps.append(path.offset(_idm_arc(speed, targets, lead, cfg, steps, dt), d, cfg.ramp_m))
+            kinds += ["idm"] * len(targets)
+            offs += [d] * len(targets)
+            spd += targets
+        if cfg.brake_decels:
+            wps.append(_brake_waypoints(path, d, speed, cfg.brake_decels, cfg, steps, dt))
+            kinds += ["brake"] * len(cfg.brake_decels)
+            offs += [d] * len(cfg.brake_decels)
+            spd += list(cfg.brake_decels)
+    return Candidates(np.concatenate(wps), kinds, np.array(offs), np.array(spd))

@@ -1,0 +1,212 @@
+"""Candidate plans scored against the world model's own forecast, PDM-style.
+
+Each candidate (:mod:`renderworld.planning.candidates`) is tracked at 10 Hz for the plan's
+horizon by the package's kinematic model (:func:`renderworld.planning.tracking.track_plans`),
+and the tracked states are scored against the :class:`~renderworld.planning.scene.ForecastScene`
+(current ego frame), with NAVSIM's PDM-score structure:
+
+* ``NC`` (no collision): 0 when, at some step, a forecast obstacle point (a mover at its
+  forecast position, or static scenery) lies inside the ego box widened by
+  :attr:`~renderworld.planning.candidates.CheckConfig.box_margin_m`; a mover point in the rear
+  half of the box (something running into the ego from behind) does not count;
+* ``DAC`` (drivable area): 0 when a corner or edge midpoint of the ego box leaves the drivable
+  cells;
+* ``EP`` (progress): distance driven over the learned plan's own (the ``plan`` candidate
+  without offset: the model's intended progress), clipped to [0, 1]; 1 for every candidate
+  when the plan moves less than ``progress_floor_m``;
+* ``TTC``: 0 when, at some step with the ego moving, its box carried on at constant velocity
+  and heading for up to ``ttc_horizon_s`` meets a forecast obstacle point ahead of it (within
+  30 degrees of its heading) that it does not already touch;
+* ``C`` (comfort): 0 when the tracked states, following the ego's last second, exceed a NAVSIM
+  comfort bound (:mod:`renderworld.planning.comfort`, the closed loop's own signals);
+* ``score = NC x DAC x (5 EP + 5 TTC + 2 C) / 12``.
+
+The best candidate has the highest score, the earlier one in candidate order on ties (the
+learned plan itself comes first). When every score is 0 the candidate that stays on the
+drivable area and meets an obstacle latest (never, best) is chosen.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from renderworld.constants import EGO_CENTRE_OFFSET, EGO_LENGTH, EGO_WIDTH, KEYFRAME_DT
+from renderworld.planning.candidates import Candidates, CheckConfig
+from renderworld.planning.comfort import COMFORT_BOUNDS, comfort_signals
+from renderworld.planning.kinematics import SIM_DT, KinematicLimits
+from renderworld.planning.scene import ForecastScene
+from renderworld.planning.tracking import track_plans
+
+__all__ = ["CandidateScores", "comfort_ok", "score_candidates"]
+
+_TTC_CONE = np.radians(30.0)
+_STOPPED = 0.05  # m/s
+
+
+@dataclass
+class CandidateScores:
+    """Every candidate and its scores (``PlanResult.candidates`` of a checked plan).
+
+    Attributes:
+        kind: N candidate kinds (``plan``, ``idm``, ``brake``).
+        offset_m: [N] lateral offsets, metres.
+        speed: [N] target speed (m/s) or deceleration (m/s^2, ``brake``).
+        waypoints: [N, S, 2] the candidates as proposed, metres, current ego frame.
+        states: [N, T, 4] (x, y, yaw, speed) tracked at 10 Hz.
+        NC, DAC, EP, TTC, C, score: [N] sub-scores and the aggregate (module docstring).
+        progress_m: [N] distance driven, metres.
+        first_contact_s: [N] time of the first contact with the forecast (inf: none).
+        best: index of the chosen candidate.
+    """
+
+    kind: list
+    offset_m: np.ndarray
+    speed: np.ndarray
+    waypoints: np.ndarray
+    states: np.ndarray
+    NC: np.ndarray
+    DAC: np.ndarray
+    EP: np.ndarray
+    TTC: np.ndarray
+    C: np.ndarray
+    score: np.ndarray
+    progress_m: np.ndarray
+    first_contact_s: np.ndarray
+    best: int
+
+    def table(self) -> list[dict]:
+        """One dict per candidate (kind, offset, speed and every score), for printing."""
+        keys = ("NC", "DAC", "EP", "TTC", "C", "score", "progress_m", "first_contact_s")
+        return [
+            {"kind": k, "offset_m": float(self.offset_m[i]), "speed": float(self.speed[i]),
+             **{n: float(getattr(self, n)[i]) for n in keys}, "best": i == self.best}
+            for i, k in enumerate(self.kind)
+        ]  # fmt: skip
+
+
+def comfort_ok(states: np.ndarray, past: np.ndarray) -> np.ndarray:
+    """[N] bool: candidates comfortable by NAVSIM's bounds (:mod:`renderworld.planning.comfort`).
+
+    Each candidate's tracked states [N, T, 4] follow the ego's past states [n, 4] (the last one:
+    now) in one window, so the filters see where the motion comes from; the quantities are
+    judged from now on.
+    """
+    n = states.shape[0]
+    past = np.broadcast_to(past[None], (n, *past.shape))
+    window = np.concatenate([past, states], axis=1)
+    if window.shape[1] < 5:
+        return np.ones(n, dtype=bool)
+    q = comfort_signals(window)
+    k = past.shape[1] - 1
+    ok = np.ones(n, dtype=bool)
+    for name, (lo, hi) in COMFORT_BOUNDS.items():
+        ok &= ((q[name][:, k:] > lo) & (q[name][:, k:] < hi)).all(1)
+    return ok
+
+
+def _box_frames(states: np.ndarray):
+    """Box centres [N, T, 2], heading unit vectors u, normals n [N, T, 2] of rear-axle states."""
+    yaw = states[..., 2]
+    u = np.stack([np.cos(yaw), np.sin(yaw)], -1)
+    nrm = np.stack([-np.sin(yaw), np.cos(yaw)], -1)
+    return states[..., :2] + EGO_CENTRE_OFFSET * u, u, nrm
+
+
+def _relevant(scene: ForecastScene, states: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Indices of the obstacle points that come near some candidate state (bounding box)."""
+    reach = np.hypot(EGO_LENGTH, EGO_WIDTH) / 2 + 2.0
+    lo = states[..., :2].reshape(-1, 2).min(0) - reach - EGO_CENTRE_OFFSET
+    hi = states[..., :2].reshape(-1, 2).max(0) + reach + EGO_CENTRE_OFFSET
+    pts = scene.points_at(times)  # [T, P, 2]
+    near = ((pts >= lo) & (pts <= hi)).all(-1).any(0)
+    return np.flatnonzero(near)
+
+
+def score_candidates(
+    cands: Candidates,
+    scene: ForecastScene,
+    past: np.ndarray,
+    cfg: CheckConfig,
+    limits: KinematicLimits | None = None,
+    dt: float = KEYFRAME_DT,
+) -> CandidateScores:
+    """Track and score candidates (module docstring).
+
+    Args:
+        cands: the candidates (``plan`` without offset first).
+        scene: the forecast scene.
+        past: [n, 4] the ego's recent 10 Hz states (x, y, yaw, speed), current ego frame, the
+            last one now (:func:`renderworld.planning.checked.past_states`).
+        cfg: the knobs.
+        limits: the kinematic model's limits (default :class:`KinematicLimits`).
+        dt: seconds between waypoints.
+    """
+    limits = limits or KinematicLimits()
+    wp = cands.waypoints
+    n, s = wp.shape[:2]
+    steps = int(round(s * dt / SIM_DT))
+    speed = float(past[-1, 3])
+    start = np.tile([0.0, 0.0, 0.0, speed], (n, 1))
+    states, _ = track_plans(start, wp, limits, steps)
+    n_ttc = int(round(cfg.ttc_horizon_s / SIM_DT))
+    times = np.arange(1, steps + n_ttc + 1) * SIM_DT
+    keep = _relevant(scene, states, times)
+    pts = scene.points_at(times)[:, keep]  # [T + n_ttc, P, 2]
+    mover = scene.mover[keep] >= 0
+    centre, u, nrm = _box_frames(states)
+    half_l = EGO_LENGTH / 2 + cfg.box_margin_m
+    half_w = EGO_WIDTH / 2 + cfg.box_margin_m
+    moving = states[..., 3] > _STOPPED  # [N, T]
+    first = np.full(n, np.inf)
+    ttc_bad = np.zeros(n, dtype=bool)
+    if pts.shape[1]:
+        rel = pts[None, :steps] - centre[:, :, None]  # [N, T, P, 2]
+        along = (rel * u[:, :, None]).sum(-1)
+        lat = (rel * nrm[:, :, None]).sum(-1)
+        inside = (np.abs(along) <= half_l) & (np.abs(lat) <= half_w)
+        rear = mover[None, None] & (along < 0)
+        hit = (inside & ~rear).any(-1)  # [N, T]
+        t_hit = np.where(hit, np.arange(1, steps + 1)[None] * SIM_DT, np.inf)
+        first = t_hit.min(1)
+        touching = inside.any(1)  # [N, P] points the box already meets: not a TTC event
+        for delta in range(1, n_ttc + 1):
+            fut = pts[delta : delta + steps][None]  # [1, T, P, 2]
+            c2 = centre + (states[..., 3] * delta * SIM_DT)[..., None] * u
+            rel2 = fut - c2[:, :, None]
+            a2 = (rel2 * u[:, :, None]).sum(-1)
+            l2 = (rel2 * nrm[:, :, None]).sum(-1)
+            in2 = (np.abs(a2) <= half_l) & (np.abs(l2) <= half_w)
+            ahead = (along > 0) & (np.abs(np.arctan2(lat, np.maximum(along, 1e-9))) <= _TTC_CONE)
+            bad = in2 & ahead & ~touching[:, None] & moving[..., None]
+            ttc_bad |= bad.any((1, 2))
+    corners = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1], [1, 0], [-1, 0], [0, 1], [0, -1]])
+    hl = EGO_LENGTH / 2 + cfg.drivable_margin_m
+    hw = EGO_WIDTH / 2 + cfg.drivable_margin_m
+    box_pts = (centre[:, :, None] + (corners[:, :1] * hl)[None, None] * u[:, :, None]
+               + (corners[:, 1:] * hw)[None, None] * nrm[:, :, None])  # fmt: skip
+    dac = scene.on_drivable(box_pts).all((1, 2))
+    progress = np.concatenate(
+        [np.zeros((n, 1)), np.hypot(*np.diff(states[..., :2], axis=1).transpose(2, 0, 1))], 1
+    ).sum(1) + np.hypot(*states[:, 0, :2].T)
+    ref = float(progress[0])
+    plan_len = float(np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), wp[0]]), axis=0).T).sum())
+    if plan_len < cfg.progress_floor_m:
+        ep = np.ones(n)
+    else:
+        ep = np.clip(progress / max(ref, 1e-9), 0.0, 1.0)
+    nc = np.isinf(first).astype(float)
+    ttc = (~ttc_bad).astype(float)
+    c = comfort_ok(states, past).astype(float)
+    score = nc * dac * (5 * ep + 5 * ttc + 2 * c) / 12
+    if score.max() > 0:
+        best = int(np.argmax(score))
+    else:  # every candidate collides or leaves the road: on the road, latest contact, progress
+        order = np.lexsort((-ep, -np.minimum(first, 1e6), -dac.astype(float)))
+        best = int(order[0])
+    return CandidateScores(
+        kind=list(cands.kind), offset_m=cands.offset_m, speed=cands.speed, waypoints=wp,
+        states=states, NC=nc, DAC=dac.astype(float), EP=ep, TTC=ttc, C=c, score=score,
+        progress_m=progress, first_contact_s=first, best=best,
+    )  # fmt: skip

@@ -1,0 +1,142 @@
+"""The forecast-checked plan: the learned plan, or the best candidate around it.
+
+``Planner.plan(request, check=True)`` (and ``PlannerSession.plan(..., check=True)``) runs, after
+the world model's own plan:
+
+1. **Forecast scene** (:func:`renderworld.planning.scene.forecast_scene`): the movers of the
+   current frame tracked through the history and moved by the model's mover forecast, the
+   static scenery and the drivable cells, in the current ego frame;
+2. **Candidates** (:func:`renderworld.planning.candidates.make_candidates`) around the plan;
+3. **Scores** (:func:`renderworld.planning.check.score_candidates`): each candidate tracked by
+   the kinematic model and scored against the forecast scene.
+
+It reads what the request carries and nothing else: the history occupancy, the history poses
+(displacements and yaws) and the model's plan (which read the command). The ego's recent motion
+(speed now, the last second at 10 Hz, for comfort) comes from splines through the history poses
+(:func:`past_states`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from renderworld.constants import KEYFRAME_DT, GridSpec
+from renderworld.planning.candidates import CheckConfig, make_candidates
+from renderworld.planning.check import CandidateScores, score_candidates
+from renderworld.planning.kinematics import KinematicLimits
+from renderworld.planning.scene import (
+    MoverForecaster,
+    constant_velocity_displacements,
+    forecast_scene,
+)
+
+__all__ = ["CheckedPlan", "check_plan", "current_speed", "past_states"]
+
+
+@dataclass
+class CheckedPlan:
+    """A checked plan.
+
+    Attributes:
+        trajectory: [S, 2] float32 metres, the chosen candidate's waypoints.
+        yaws: [S] float32 radians, its headings.
+        candidates: every candidate and its scores.
+        timings: milliseconds: ``scene`` (tracking and moving the movers), ``candidates``,
+            ``scoring``, ``check`` (their sum).
+    """
+
+    trajectory: np.ndarray
+    yaws: np.ndarray
+    candidates: CandidateScores
+    timings: dict
+
+
+def past_states(history_poses: np.ndarray, dt: float = KEYFRAME_DT, seconds: float = 1.0):
+    """The ego's recent 10 Hz states from its history poses (current ego frame).
+
+    Positions and headings are interpolated by cubic splines through the history poses (one per
+    ``dt``); speeds are the spline's velocity norm.
+
+    Args:
+        history_poses: [H >= 2, 3] (x, y, yaw), oldest first, the last the current frame.
+        dt: seconds between history frames.
+        seconds: how far back, at most the history's span.
+
+    Returns:
+        [n, 4] (x, y, yaw, speed) at -seconds ... 0 s every 0.1 s (the last: now).
+    """
+    from scipy.interpolate import CubicSpline
+
+    p = np.asarray(history_poses, dtype=np.float64)
+    t = (np.arange(len(p)) - (len(p) - 1)) * dt
+    span = min(seconds, -t[0])
+    ts = np.round(np.arange(-span, 1e-9, 0.1), 9)
+    yaw = np.unwrap(p[:, 2])
+    if len(p) == 2:  # a line: constant velocity
+        v = (p[1, :2] - p[0, :2]) / dt
+        xy = p[1, :2] + ts[:, None] * v
+        return np.column_stack([xy, np.interp(ts, t, yaw), np.full(len(ts), np.hypot(*v))])
+    sx, sy, syaw = CubicSpline(t, p[:, 0]), CubicSpline(t, p[:, 1]), CubicSpline(t, yaw)
+    speed = np.hypot(sx(ts, 1), sy(ts, 1))
+    return np.column_stack([sx(ts), sy(ts), syaw(ts), speed])
+
+
+def current_speed(history_poses: np.ndarray, dt: float = KEYFRAME_DT) -> float:
+    """The ego's speed now (m/s): :func:`past_states`' last speed."""
+    return float(past_states(history_poses, dt, seconds=0.0)[-1, 3])
+
+
+def check_plan(
+    history_occupancy: np.ndarray,
+    history_poses: np.ndarray,
+    plan_poses: np.ndarray,
+    grid: GridSpec,
+    config: CheckConfig | None = None,
+    limits: KinematicLimits | None = None,
+    movers: MoverForecaster = constant_velocity_displacements,
+    dt: float = KEYFRAME_DT,
+) -> CheckedPlan:
+    """Check a learned plan against the forecast (module docstring).
+
+    Args:
+        history_occupancy: [H, X, Y, Z] uint8 Occ3D labels, each frame in its own ego frame.
+        history_poses: [H, 3] (x, y, yaw) of those frames in the current ego frame.
+        plan_poses: [S, 3] (x, y, yaw) the learned plan, current ego frame.
+        grid: the occupancy grid.
+        config: the checker's knobs (default :class:`CheckConfig`).
+        limits: the kinematic model's limits.
+        movers: the mover forecast (default: each tracked mover at its fitted velocity).
+        dt: seconds between frames and waypoints.
+
+    Raises:
+        ValueError: naming the argument on a shape mismatch.
+    """
+    cfg = config or CheckConfig()
+    plan = np.asarray(plan_poses, dtype=np.float64)
+    if plan.ndim != 2 or plan.shape[1] != 3 or len(plan) < 1:
+        raise ValueError(f"plan_poses: expected [S >= 1, 3] (x, y, yaw), got {plan.shape}")
+    hist = np.asarray(history_poses, dtype=np.float64)
+    if hist.ndim != 2 or hist.shape[1] != 3 or len(hist) < 2:
+        raise ValueError(f"history_poses: expected [H >= 2, 3] (x, y, yaw), got {hist.shape}")
+    t0 = time.perf_counter()
+    scene = forecast_scene(history_occupancy, hist, grid, len(plan), dt, movers)
+    t1 = time.perf_counter()
+    past = past_states(hist, dt)
+    speed = float(past[-1, 3])
+    cands = make_candidates(plan[:, :2], plan[:, 2], speed, scene, cfg, dt)
+    t2 = time.perf_counter()
+    scores = score_candidates(cands, scene, past, cfg, limits, dt)
+    t3 = time.perf_counter()
+    b = scores.best
+    traj = scores.waypoints[b]
+    if np.array_equal(traj, plan[:, :2]):  # the learned plan itself
+        yaws = plan[:, 2]
+    else:  # the kinematic model's headings at the waypoints
+        step = int(round(dt / 0.1))
+        yaws = scores.states[b, step - 1 :: step, 2][: len(plan)]
+    ms = {"scene": 1e3 * (t1 - t0), "candidates": 1e3 * (t2 - t1), "scoring": 1e3 * (t3 - t2)}
+    ms["check"] = sum(ms.values())
+    return CheckedPlan(traj.astype(np.float32), yaws.astype(np.float32), scores, ms)

@@ -1,0 +1,112 @@
+"""The forecast-checked plan: hand-made scenes on the demo's coarse grid (1.6 m voxels).
+
+The ego drives along +x at 10 m/s; each history frame is drawn in its own ego frame. The
+learned plan is replaced by a hand-made one, so every case knows what the check must do.
+"""
+
+import numpy as np
+import pytest
+
+from renderworld.constants import FREE_ID, OCC3D_CLASSES, get_grid
+from renderworld.planning.candidates import CheckConfig, PlanPath
+from renderworld.planning.checked import check_plan, past_states
+from renderworld.planning.scene import forecast_scene
+
+GRID = get_grid("coarse")
+ROAD, SIDEWALK = OCC3D_CLASSES.index("driveable_surface"), OCC3D_CLASSES.index("sidewalk")
+CAR, PED = OCC3D_CLASSES.index("car"), OCC3D_CLASSES.index("pedestrian")
+V, DT, H = 10.0, 0.5, 5
+TIMES = (np.arange(H) - (H - 1)) * DT  # -2.0 ... 0.0 s
+
+
+def _cell(x, y):
+    g = GRID
+    return (int(np.floor((x - g.range_min[0]) / g.voxel_size[0])),
+            int(np.floor((y - g.range_min[1]) / g.voxel_size[1])))  # fmt: skip
+
+
+def history(objects=(), road_half_width=8.0):
+    """History occupancy [H, X, Y, Z] and poses [H, 3] of the ego at V m/s along +x.
+
+    ``objects``: (class, world_xy(t) -> [2] metres at time t (s, 0 = now), (cells x, cells y)).
+    """
+    occ = np.full((H, *GRID.shape), FREE_ID, dtype=np.uint8)
+    ys = GRID.range_min[1] + (np.arange(GRID.shape[1]) + 0.5) * GRID.voxel_size[1]
+    occ[:, :, :, 0] = np.where(np.abs(ys) < road_half_width, ROAD, SIDEWALK)[None, None]
+    poses = np.stack([V * TIMES, np.zeros(H), np.zeros(H)], 1)
+    for k, t in enumerate(TIMES):
+        for cls, where, (nx, ny) in objects:
+            wx, wy = where(t)
+            ix, iy = _cell(wx - poses[k, 0], wy)
+            occ[k, ix : ix + nx, iy : iy + ny, :2] = cls
+    return occ, poses
+
+
+def straight_plan(speed=V, steps=6):
+    t = np.arange(1, steps + 1) * DT
+    return np.stack([speed * t, np.zeros(steps), np.zeros(steps)], 1)
+
+
+def test_a_free_road_keeps_the_learned_plan_exactly():
+    occ, poses = history()
+    plan = straight_plan()
+    out = check_plan(occ, poses, plan, GRID)
+    c = out.candidates
+    assert c.best == 0 and c.kind[0] == "plan" and c.offset_m[0] == 0.0
+    np.testing.assert_array_equal(out.trajectory, plan[:, :2].astype(np.float32))
+    assert c.NC[0] == 1 and c.DAC[0] == 1 and c.EP[0] == 1 and c.TTC[0] == 1
+    assert len(c.table()) == len(c.kind) > 20 and c.table()[0]["best"]
+    assert set(out.timings) == {"scene", "candidates", "scoring", "check"}
+
+
+def test_a_parked_car_blocking_the_road_is_stopped_for():
+    car_x = 28.0  # world x of the car's rear, 28 m ahead of the ego now; it blocks the road
+    occ, poses = history([(CAR, lambda t: (car_x, -2.4), (3, 3))], road_half_width=3.5)
+    plan = straight_plan()
+    out = check_plan(occ, poses, plan, GRID)
+    c = out.candidates
+    # The plan as is (30 m in 3 s) would hit it: its own candidate is held back behind it.
+    assert c.waypoints[0, -1, 0] < plan[-1, 0] - 5.0
+    assert c.NC[c.best] == 1 and (c.score[c.best] >= c.score).all()
+    assert out.trajectory[:, 0].max() + 1.1 + 2.042 < car_x  # the box stops short of the car
+    np.testing.assert_array_equal(out.trajectory, c.waypoints[c.best].astype(np.float32))
+
+
+def test_a_crossing_pedestrian_is_tracked_at_walking_speed_and_braked_for():
+    walk = 1.2  # m/s: slower than one coarse voxel (1.6 m) per second
+    ped = (PED, lambda t: (18.0, -2.4 + walk * t), (1, 1))  # seen in all five frames
+    occ, poses = history([ped])
+    scene = forecast_scene(occ, poses, GRID, 6)
+    (track,) = scene.tracks
+    assert track.moving and track.velocity[1] == pytest.approx(walk, abs=0.5)
+    out = check_plan(occ, poses, straight_plan(), GRID)
+    c = out.candidates
+    assert c.NC[c.best] == 1 and c.TTC[c.best] == 1
+    assert c.progress_m[c.best] < 20.0  # the plan as is drives 30 m, past the crossing
+
+
+def test_a_plan_off_the_road_fails_the_drivable_area():
+    occ, poses = history(road_half_width=3.0)
+    t = np.arange(1, 7) * DT
+    swerve = np.stack([V * t, 1.5 * t * t, np.zeros(6)], 1)  # 13.5 m to the left at 3 s
+    swerve[:, 2] = np.arctan2(np.gradient(swerve[:, 1]), np.gradient(swerve[:, 0]))
+    c = check_plan(occ, poses, swerve, GRID).candidates
+    assert c.DAC[0] == 0 and c.score[0] == 0
+
+
+def test_past_states_follow_the_history_and_give_the_speed():
+    occ, poses = history()
+    past = past_states(poses)
+    np.testing.assert_allclose(past[:, 3], V, atol=1e-9)
+    np.testing.assert_allclose(past[:, 0], np.round(np.arange(-1.0, 1e-9, 0.1), 9) * V, atol=1e-9)
+
+
+def test_paths_and_config_are_validated():
+    path = PlanPath(np.array([[0.0, 0.0], [5.0, 0.0]]), extend_m=10.0)
+    np.testing.assert_allclose(path.at(np.array([12.0]))[0], [[12.0, 0.0]])
+    occ, poses = history()
+    with pytest.raises(ValueError, match="plan_poses"):
+        check_plan(occ, poses, np.zeros((6, 2)), GRID)
+    with pytest.raises(ValueError, match="history_poses"):
+        check_plan(occ, poses[:, :2], straight_plan(), GRID)
+    assert CheckConfig().offsets_m[0] == 0.0  # the learned path itself comes first
