@@ -149,6 +149,9 @@ def info_rows(
             )
         row = {
             "scene_name": frames.name,
+            "scene_description": str(
+                reader.table("scene").at[reader.scene_token(frames.name), "description"]
+            ),
             "scene_index": frames.index,
             "frame_index": i,
             "sample_token": token,

@@ -94,6 +94,7 @@ class InfosDataset(Dataset):
         self.scene_first, self.scene_count = _scene_positions(self.infos)
         # Plain lists for per-item access (DataFrame.at costs more than the rest of an item).
         names = ["sample_token", "scene_name", "occ_path", "labels2d_path", "command"]
+        names += ["scene_description"] if "scene_description" in self.infos.columns else []
         names += [c for c in self.infos.columns if c.startswith("cam") and c.endswith("_path")]
         self.text = {name: self.infos[name].astype(str).tolist() for name in names}
 

@@ -52,6 +52,7 @@ def infos_schema() -> pa.Schema:
     """The arrow schema of an infos file (column order of docs/formats.md#infos)."""
     fields = [
         ("scene_name", pa.string()),
+        ("scene_description", pa.string()),
         ("scene_index", pa.int32()),
         ("frame_index", pa.int32()),
         ("sample_token", pa.string()),

@@ -181,6 +181,7 @@ class OccSequenceDataset(InfosDataset):
             "current_boxes_mask": torch.from_numpy(boxes_mask[0]),
             "meta": {
                 "scene": (self.text["scene_name"][last]),
+                "scene_description": self.text.get("scene_description", [""] * (last + 1))[last],
                 "sample_tokens": [(self.text["sample_token"][r]) for r in rows],
             },
         }

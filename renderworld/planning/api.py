@@ -57,6 +57,7 @@ from renderworld.planning.pose_warp import (
     tokenizer_grid_shape,
 )
 from renderworld.planning.request import PlanRequest, PlanResult, as_numpy
+from renderworld.planning.scene import model_forecaster
 from renderworld.tokenizer import SceneTokenizer
 from renderworld.tokenizer.inference import FastSceneCodec, cache_frames_per_pass
 from renderworld.tokenizer.tokens import Tokens
@@ -265,8 +266,9 @@ class Planner:
             if check:
                 h_np, p_np = hist.double().cpu().numpy(), poses.double().cpu().numpy()
                 o_np = occ.cpu().numpy()
-                checks = [check_plan(o_np[i], h_np[i], p_np[i], self.grid, self.check_config)
-                          for i in range(b)]  # fmt: skip
+                movers = model_forecaster(self.world_model)
+                checks = [check_plan(o_np[i], h_np[i], p_np[i], self.grid, self.check_config,
+                                     movers=movers) for i in range(b)]  # fmt: skip
                 ms["check"] = sum(c.timings["check"] for c in checks)
         timings = {**ms, "total": 1e3 * (self._sync() - t0), "batch_size": b}
         out = []

@@ -36,6 +36,8 @@ __all__ = [
     "MoverForecaster",
     "constant_velocity_displacements",
     "forecast_scene",
+    "head_forecaster",
+    "model_forecaster",
 ]
 
 #: Classes the ego box must not touch: objects (0..10), manmade, vegetation.
@@ -45,12 +47,20 @@ OBSTACLE_CLASS_IDS: tuple[int, ...] = (*range(11), OCC3D_CLASSES.index("manmade"
 OBSTACLE_TOP_M = 2.0
 _DRIVEABLE = OCC3D_CLASSES.index("driveable_surface")
 
-#: ``(tracks, steps, dt) -> [M, steps + 1, 2]`` forecast displacements of the tracked movers.
-MoverForecaster = Callable[[Sequence[MoverTrack], int, float], np.ndarray]
+#: ``(tracks, current [X, Y, Z], history_poses [H, 3], grid, steps, dt) -> [M, steps + 1, 2]``
+#: forecast displacements (metres, 0 at the first sample) of the tracked movers.
+MoverForecaster = Callable[
+    [Sequence[MoverTrack], np.ndarray, np.ndarray, GridSpec, int, float], np.ndarray
+]
 
 
 def constant_velocity_displacements(
-    tracks: Sequence[MoverTrack], steps: int, dt: float = KEYFRAME_DT
+    tracks: Sequence[MoverTrack],
+    current: np.ndarray,
+    history_poses: np.ndarray,
+    grid: GridSpec,
+    steps: int,
+    dt: float = KEYFRAME_DT,
 ) -> np.ndarray:
     """[M, steps + 1, 2] displacements of movers going on at their fitted velocity (metres)."""
     t = np.arange(steps + 1) * dt
@@ -58,6 +68,28 @@ def constant_velocity_displacements(
         return np.zeros((0, steps + 1, 2))
     vel = np.stack([tr.velocity for tr in tracks])
     return t[None, :, None] * vel[:, None, :]
+
+
+def head_forecaster(head) -> MoverForecaster:
+    """The :data:`MoverForecaster` of a learned mover head
+    (:func:`renderworld.world.learned_movers.head_displacements`)."""
+    from renderworld.world.learned_movers import head_displacements
+
+    def movers(tracks, current, history_poses, grid, steps, dt=KEYFRAME_DT) -> np.ndarray:
+        disp = head_displacements(head, current, history_poses, tracks, grid, steps, dt)
+        return np.concatenate([np.zeros((len(disp), 1, 2)), disp], axis=1)
+
+    return movers
+
+
+def model_forecaster(world_model) -> MoverForecaster:
+    """The mover forecast a checked plan reads for ``world_model``: its mover head when its
+    forecast moves others by it (``movers="learned"``), else each tracked mover at its fitted
+    velocity."""
+    head = getattr(world_model, "mover_head", None)
+    if head is not None and getattr(world_model, "movers", None) == "learned":
+        return head_forecaster(head)
+    return constant_velocity_displacements
 
 
 @dataclass
@@ -145,7 +177,8 @@ def forecast_scene(
         grid: the occupancy grid.
         steps: S forecast steps.
         dt: seconds per step.
-        movers: forecasts the tracked movers' displacements (default: constant velocity).
+        movers: forecasts the tracked movers' displacements (default: constant velocity; a
+            learned mover head: :func:`head_forecaster`).
         min_shift_voxels: :func:`~renderworld.world.tracks.track_movers`' moving threshold.
 
     Raises:
@@ -165,9 +198,8 @@ def forecast_scene(
     ix, iy = np.nonzero(obstacle | (mover_of >= 0))
     pts = np.stack([grid.range_min[0] + (ix + 0.5) * grid.voxel_size[0],
                     grid.range_min[1] + (iy + 0.5) * grid.voxel_size[1]], -1)  # fmt: skip
-    disp = np.asarray(movers(tracks, steps, dt), dtype=np.float64).reshape(
-        len(tracks), steps + 1, 2
-    )
+    disp = movers(tracks, current, np.asarray(history_poses, dtype=np.float64), grid, steps, dt)
+    disp = np.asarray(disp, dtype=np.float64).reshape(len(tracks), steps + 1, 2)
     return ForecastScene(
         points=pts.astype(np.float64),
         mover=mover_of[ix, iy],

@@ -23,6 +23,7 @@ __all__ = [
     "ROAD_KINDS",
     "BEHAVIOURS",
     "INTERACTIONS",
+    "behaviour_of",
     "MIN_INTERACTION_KEYFRAMES",
     "WEATHERS",
     "SIM_MODES",
@@ -60,6 +61,19 @@ INTERACTIONS: dict[str, tuple[str, ...]] = {
 #: Interactions need room for 5 history + 6 future keyframes around the reaction.
 MIN_INTERACTION_KEYFRAMES = 16
 WEATHERS: tuple[str, ...] = ("clear", "rain", "fog")
+
+
+def behaviour_of(description: str) -> str:
+    """The behaviour named by a simulated scene's description (``scene.json``: "Simulated
+    <road kind>, <behaviour>, ..."), or "" for any other description (e.g. real nuScenes)."""
+    prefix = "Simulated "
+    if not isinstance(description, str) or not description.startswith(prefix):
+        return ""
+    parts = description[len(prefix) :].split(", ")
+    name = parts[1].replace(" ", "_") if len(parts) > 1 else ""
+    return name if name in BEHAVIOURS else ""
+
+
 SIM_MODES: tuple[str, ...] = ("full", "occupancy")  # what a run writes (SimConfig.mode)
 
 #: lidarseg categories the simulator can build, with a default annotation size

@@ -311,6 +311,7 @@ def _finish_scene(sc: _SceneState, log_tok: str) -> None:
                    category_token=writer.tok("category", obj_cat), nbr_annotations=len(chain),
                    first_annotation_token=chain[0]["token"],
                    last_annotation_token=chain[-1]["token"])  # fmt: skip
+    # renderworld.sim.scene.behaviour_of reads the behaviour back from this description.
     desc = f"{spec.kind.replace('_', '-')}, {spec.behaviour.replace('_', ' ')}"
     desc += ", rain" if eff.weather == "rain" else ", fog" if eff.weather == "fog" else ""
     desc += ", night" if eff.night else ", day"

@@ -7,7 +7,9 @@ poses its pose head predicted:
    the poses. With ``movers="object_cv"`` every movable bird's-eye-view component of the
    current frame first moves at its own velocity, measured against frame t-2 brought into the
    current frame (:func:`renderworld.world.movers.object_cv_frames`; parked objects, unmatched
-   objects and new ones stay put in the world); with ``"static"`` nothing moves.
+   objects and new ones stay put in the world); with ``"learned"`` each one moves where the
+   model's mover head puts it (:mod:`renderworld.world.learned_movers`); with ``"static"``
+   nothing moves.
 2. **Encode**: the history frames t-H+1..t-1 brought into the current ego frame
    (:func:`renderworld.world.pose.align_history`) and the warped frames, by the caller's
    :class:`FrameCodec` (the stage caches codes; the planner encodes one batch).
@@ -38,8 +40,10 @@ import torch
 
 from renderworld.constants import FREE_ID, NUM_OCC3D_CLASSES, GridSpec
 from renderworld.world.baselines import warp_along_poses
+from renderworld.world.learned_movers import learned_mover_frames
 from renderworld.world.movers import (
     MOVERS,
+    MoversFrames,
     movable_mask,
     object_cv_frames,
     warp_frames_along_poses,
@@ -54,6 +58,7 @@ __all__ = [
     "check_movers",
     "compose_forecast",
     "inside_mask",
+    "movers_of",
     "pose_warp_forecast",
     "warp_current",
 ]
@@ -111,30 +116,52 @@ def inside_mask(poses: torch.Tensor, grid: GridSpec, device: torch.device) -> to
     return warp_along_poses(ones, poses.double(), bev_grid(grid), fill=0)[..., 0].bool()
 
 
+def movers_of(model) -> str | MoversFrames:
+    """How ``model``'s forecast moves others: ``"static"``, or the function that moves them
+    (:func:`~renderworld.world.movers.object_cv_frames`, or its mover head's frames).
+
+    Raises:
+        ValueError: ``movers="learned"`` on a model without a mover head.
+    """
+    movers = check_movers(getattr(model, "movers", "static"))
+    if movers == "static":
+        return "static"
+    if movers == "object_cv":
+        return object_cv_frames
+    head = getattr(model, "mover_head", None)
+    if head is None:
+        raise ValueError("movers: 'learned' needs a model with a mover head, this one has none")
+    return learned_mover_frames(head)
+
+
 def warp_current(
     history: torch.Tensor,
     history_poses: torch.Tensor,
     poses: torch.Tensor,
     grid: GridSpec,
-    movers: str = "static",
+    movers: str | MoversFrames = "static",
 ) -> torch.Tensor:
     """The current frame warped along future poses (step 1 of the module doc).
 
     Args:
         history: [B, H, X, Y, Z] labels, each frame in its own ego frame (the last: current).
         history_poses: [B, H, 3] poses of those frames in the current ego frame (read only
-            with ``movers="object_cv"``).
+            when the movers move).
         poses: [B, S, 3] future poses in the current ego frame.
         grid: the occupancy grid.
-        movers: one of :data:`MOVERS`.
+        movers: one of :data:`MOVERS` but ``"learned"``, or a function moving the movers
+            (:func:`movers_of`).
 
     Returns:
         [B, S, X, Y, Z], the dtype of ``history``.
     """
-    check_movers(movers)
-    if movers == "static":
-        return warp_along_poses(history[:, -1], poses.double(), grid)
-    moved = object_cv_frames(history, history_poses.double(), poses.shape[1], grid)
+    if not callable(movers):
+        if check_movers(movers) == "learned":
+            raise ValueError("movers: 'learned' needs the model's mover frames (movers_of)")
+        if movers == "static":
+            return warp_along_poses(history[:, -1], poses.double(), grid)
+        movers = object_cv_frames
+    moved = movers(history, history_poses.double(), poses.shape[1], grid)
     return warp_frames_along_poses(moved, poses.double(), grid)
 
 
@@ -188,7 +215,7 @@ def pose_warp_forecast(
     """
     h = history.shape[1]
     current = history[:, h - 1]
-    warped = warp_current(history, history_poses, poses, grid, getattr(model, "movers", "static"))
+    warped = warp_current(history, history_poses, poses, grid, movers_of(model))
     inside = inside_mask(poses, grid, history.device)
     aligned = align_history(history[:, : h - 1], history_poses[:, : h - 1], grid)
     hist_codes, base_codes = codec.encode(aligned, warped)

@@ -61,13 +61,15 @@ __all__ = [
     "object_constant_velocity_forecast",
     "object_cv_frames",
     "object_velocities",
+    "paste_shifted",
     "remove_movers",
     "warp_frames_along_poses",
 ]
 
 #: How a pose-warp forecast moves other road users (``stage.movers``): ``static`` (nothing
-#: moves) or ``object_cv`` (:func:`object_cv_frames`).
-MOVERS = ("static", "object_cv")
+#: moves), ``object_cv`` (:func:`object_cv_frames`) or ``learned`` (the model's mover head,
+#: :mod:`renderworld.world.learned_movers`).
+MOVERS = ("static", "object_cv", "learned")
 
 #: Gate of the velocity matching, metres per second, per movable class (default: vehicles).
 MAX_SPEED_MPS: dict[int, float] = {cls: 15.0 for cls in MOVABLE_CLASS_IDS} | {
@@ -176,19 +178,33 @@ def _shift(a: np.ndarray, dx: int, dy: int) -> np.ndarray:
     return out
 
 
+def paste_shifted(frame: np.ndarray, comps: list, shifts: np.ndarray, steps: int) -> np.ndarray:
+    """[S, X, Y, Z]: ``frame`` without movers, component i pasted shifted by ``shifts[i, k]``.
+
+    Args:
+        frame: [X, Y, Z] integer labels.
+        comps: (class id, cells [X, Y] bool, ...) per component (:func:`bev_components`).
+        shifts: [N, S, 2] int, whole cells along x and y per component and step.
+        steps: S.
+    """
+    static = np.where(np.isin(frame, MOVABLE_CLASS_IDS), FREE_ID, frame).astype(frame.dtype)
+    out = np.repeat(static[None], steps, axis=0)
+    for (cls, cells, *_), shift in zip(comps, shifts):
+        body = (frame == cls) & cells[..., None]  # [X, Y, Z] the component's voxels
+        for k, (dx, dy) in enumerate(shift):
+            out[k][_shift(body, int(dx), int(dy))] = cls
+    return out
+
+
 def _moved_frames(frame: np.ndarray, comps: list, vel: np.ndarray, steps: int, dt: float,
                   grid: GridSpec) -> np.ndarray:  # fmt: skip
     """[S, X, Y, Z]: ``frame`` without movers, each component pasted at ``c + v k dt``."""
-    static = np.where(np.isin(frame, MOVABLE_CLASS_IDS), FREE_ID, frame).astype(frame.dtype)
-    out = np.repeat(static[None], steps, axis=0)
     sx, sy = grid.voxel_size[0], grid.voxel_size[1]
-    for (cls, cells, _), v in zip(comps, vel):
-        body = (frame == cls) & cells[..., None]  # [X, Y, Z] the component's voxels
-        for k in range(1, steps + 1):
-            dx, dy = int(round(v[0] * k * dt / sx)), int(round(v[1] * k * dt / sy))
-            moved = _shift(body, dx, dy)
-            out[k - 1][moved] = cls
-    return out
+    shifts = np.array(
+        [[(int(round(v[0] * k * dt / sx)), int(round(v[1] * k * dt / sy)))
+          for k in range(1, steps + 1)] for v in vel], dtype=np.int64,
+    ).reshape(len(comps), steps, 2)  # fmt: skip
+    return paste_shifted(frame, comps, shifts, steps)
 
 
 def _check_history(history_occupancy, history_poses, grid: GridSpec, lag: int):

@@ -22,6 +22,7 @@ from renderworld.constants import COMMANDS, FREE_ID, GridSpec
 from renderworld.world.baselines import constant_turn_rate_poses, warp_along_poses
 from renderworld.world.config import WorldModelConfig
 from renderworld.world.model import WorldModel
+from renderworld.world.mover_head import MoverHead
 from renderworld.world.movers import MOVERS
 
 __all__ = [
@@ -295,8 +296,9 @@ class PoseWarpWorldModel(nn.Module):
             exactly this sequence's length).
         copy_bonus: initial logit bonus of the warped code.
         anchors: the pose head's extrapolations (:data:`ANCHORS`).
-        movers: how the forecast moves other road users (``"static"`` or ``"object_cv"``,
-            :mod:`renderworld.world.forecast`); no weights depend on it.
+        movers: how the forecast moves other road users (``"static"``, ``"object_cv"`` or
+            ``"learned"``, :mod:`renderworld.world.forecast`); only ``"learned"`` has weights,
+            its :attr:`mover_head` (:class:`~renderworld.world.mover_head.MoverHead`).
         kinematics: the pose head also reads :func:`kinematic_features` of the history.
     """
 
@@ -321,6 +323,10 @@ class PoseWarpWorldModel(nn.Module):
             config.history_frames, config.future_frames, anchors=anchors, kinematics=kinematics
         )
         self.copy_bonus = nn.Parameter(torch.full((config.num_codebooks,), float(copy_bonus)))
+        #: The learned mover motion (``movers="learned"``), else None.
+        self.mover_head = (
+            MoverHead(config.history_frames, config.future_frames) if movers == "learned" else None
+        )
 
     def predict_poses(
         self, history_poses: torch.Tensor, command: torch.Tensor, current: torch.Tensor

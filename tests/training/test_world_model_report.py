@@ -294,14 +294,21 @@ def test_the_gt_pose_object_cv_reference_row(tmp_path):
     from renderworld.constants import GRIDS, OCC3D_CLASSES
     from renderworld.training.stages.world_model.evaluation import MODEL_FREE_METHODS
     from renderworld.training.stages.world_model.references import reference_forecasts
-    from renderworld.training.stages.world_model.report import METHODS, REFERENCES, write_report
+    from renderworld.training.stages.world_model.report import (
+        METHODS,
+        MODEL_MOVERS,
+        REFERENCES,
+        write_report,
+    )
 
     grid, car = GRIDS["coarse"], OCC3D_CLASSES.index("car")
     # The ego drives 2 cells per frame; a parked car at (30, 30) and a car at (15, 20) that
     # drove 6 cells forward in the last second: 3 cells per frame, 1 more than the ego.
     batch = default_collate([_mover_item([(30, 30), (15, 20)], [(34, 30), (13, 20)])])
     refs = reference_forecasts(batch, "occ", 3, grid)
-    assert list(refs) == list(REFERENCES) and set(REFERENCES) <= set(MODEL_FREE_METHODS)
+    free = [r for r in REFERENCES if r != MODEL_MOVERS]  # the learned movers' row reads a model
+    assert list(refs) == free and set(free) <= set(MODEL_FREE_METHODS)
+    assert MODEL_MOVERS not in MODEL_FREE_METHODS
     box = {(0, 0), (0, 1), (1, 0), (1, 1)}
     for k in range(1, 7):
         cells = set(zip(*(t.tolist() for t in torch.nonzero(
@@ -313,7 +320,8 @@ def test_the_gt_pose_object_cv_reference_row(tmp_path):
     # Beside the other references, with the movers' column; in the markdown, CSV and legend.
     names = [m[0] for m in METHODS]
     assert names.index("warp_gt_pose") + 1 == names.index("warp_gt_object_cv")
-    assert names.index("warp_gt_object_cv") + 1 == names.index("warp_gt_movers")
+    assert names.index("warp_gt_object_cv") + 1 == names.index(MODEL_MOVERS)
+    assert names.index(MODEL_MOVERS) + 1 == names.index("warp_gt_movers")
     metrics = _metrics("", 0.0)
     for h in ("1s", "2s", "avg"):
         metrics[f"val/warp_gt_object_cv/miou_{h}"] = 0.4

@@ -3,7 +3,8 @@
 Training (teacher forcing): the pose head is fitted to the ground-truth future poses
 (:func:`renderworld.world.pose.pose_loss`); the token network reads the history brought into
 the current ego frame and the current frame warped along the **ground-truth** future poses (its
-movers moved first when the model's ``movers`` is ``object_cv``), and is fitted to the future
+movers moved first by the model's rule: ``object_cv``, or its mover head, fitted before), and is
+fitted to the future
 frames' codes (cross-entropy). Loss = token CE + ``lambda_pose`` x pose loss.
 
 Forecast (test time): poses from the pose head (history poses, the batch's command, current
@@ -28,7 +29,7 @@ from renderworld.constants import COMMANDS
 from renderworld.tokenizer import Tokens
 from renderworld.training.stages.world_model.report import CHECKED, CHECKED_HISTORY_COMMAND
 from renderworld.training.stages.world_model.windows import frame_keys
-from renderworld.world.forecast import pose_warp_forecast, warp_current
+from renderworld.world.forecast import movers_of, pose_warp_forecast, warp_current
 from renderworld.world.pose import align_history, pose_loss
 
 if TYPE_CHECKING:
@@ -235,7 +236,8 @@ def pose_teacher_forced(
     b = occ.shape[0]
     toks = frame_keys(batch, b, occ.shape[1])
     movers = getattr(model, "movers", "static")
-    bases = warp_current(occ[:, :h], batch["history_poses"], fut_poses, stage.grid, movers)
+    bases = warp_current(occ[:, :h], batch["history_poses"], fut_poses, stage.grid,
+                         movers_of(model))  # fmt: skip
     bases = bases.flatten(0, 1)
     tok_key = st.tokenizer_ckpt if tokenizer is None else str(tokenizer)
     warp_key = "warp_gt" if movers == "static" else f"warp_gt_{movers}"
@@ -308,13 +310,14 @@ def pose_forecast(
 
 
 def checked_plans(
-    stage: PoseWarpStage, batch: dict, setting: EvalSetting, poses: torch.Tensor
+    stage: PoseWarpStage, model: Any, batch: dict, setting: EvalSetting, poses: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The model's plans checked against its own forecast, as a planner bundle drives them
     (:func:`renderworld.planning.checked.check_plan`, default knobs).
 
     Args:
         stage: the stage (its history length and grid).
+        model: the pose-warp model (its mover forecast).
         batch: a collated batch (the setting's history occupancy and ``history_poses`` read).
         setting: whose history occupancy the forecast is made of.
         poses: [B, S, 3] the model's predicted poses.
@@ -324,12 +327,14 @@ def checked_plans(
         device and in the dtype of ``poses``.
     """
     from renderworld.planning.checked import check_plan
+    from renderworld.planning.scene import model_forecaster
 
     h = stage.settings.history
     occ = batch[setting.inputs][:, :h].cpu().numpy()
     hist = batch["history_poses"].double().cpu().numpy()
     plan = poses.double().cpu().numpy()
-    out = [check_plan(occ[i], hist[i], plan[i], stage.grid) for i in range(len(plan))]
+    movers = model_forecaster(model)
+    out = [check_plan(o, hp, p, stage.grid, movers=movers) for o, hp, p in zip(occ, hist, plan)]
     traj = torch.from_numpy(np.stack([c.trajectory for c in out])).to(poses)
     yaws = torch.from_numpy(np.stack([c.yaws for c in out])).to(poses)
     return traj, yaws

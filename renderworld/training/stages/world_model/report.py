@@ -30,6 +30,7 @@ __all__ = [
     "CHECKED",
     "CHECKED_HISTORY_COMMAND",
     "HISTORY_COMMAND",
+    "MODEL_MOVERS",
     "METHODS",
     "REPORT_BASENAME",
     "REFERENCES",
@@ -46,6 +47,8 @@ HISTORY_COMMAND = "model_history_command"
 #: The model's plan checked against its own forecast (renderworld.planning.checked), with the
 #: GT-derived command and with the command from the history.
 CHECKED, CHECKED_HISTORY_COMMAND = "model_checked", "model_checked_history_command"
+#: The current frame with the model's learned movers moved, warped along the GT future poses.
+MODEL_MOVERS = "warp_gt_model_movers"
 #: (metric prefix, table label, has an occupancy forecast, has a trajectory)
 METHODS: tuple[tuple[str, str, bool, bool], ...] = (
     ("model", "model", True, True),
@@ -62,10 +65,11 @@ METHODS: tuple[tuple[str, str, bool, bool], ...] = (
     ("ctr_traj", "CTR-trajectory", False, True),
     ("warp_gt_pose", "GT-pose warp (ref.)", True, False),
     ("warp_gt_object_cv", "GT-pose + object-CV movers (ref.)", True, False),
+    (MODEL_MOVERS, "GT-pose + model movers (ref.)", True, False),
     ("warp_gt_movers", "GT-pose warp + GT movers (ref.)", True, False),
 )
 #: Methods that read the future (reported as references, never as competitors).
-REFERENCES = ("warp_gt_pose", "warp_gt_object_cv", "warp_gt_movers")
+REFERENCES = ("warp_gt_pose", "warp_gt_object_cv", MODEL_MOVERS, "warp_gt_movers")
 #: Window subsets of the CSV's split columns (see ``splits.TURN_THRESHOLD_DEG``).
 SPLITS = ("straight", "turning")
 REPORT_BASENAME = "world_model_eval"
@@ -87,7 +91,8 @@ _LEGEND_BASELINES = (
     "component shifted by its own velocity measured against frame t-2 (history only). "
     "GT-pose + object-CV movers (ref.) = the current frame with its movers moved as in the "
     "object-CV warp, warped along the ground-truth future poses: the pose-warp model's design "
-    "with perfect ego poses; reads the future, not a method. "
+    "with perfect ego poses; reads the future, not a method. GT-pose + model movers (ref.) = "
+    "the same with the movers moved by the model's learned mover head: its movers alone. "
     "GT-pose warp + GT movers (ref.) = the GT-pose warp without the current movers, the "
     "ground-truth future movers pasted in: reads the future, an upper bound, not a method. "
     "Movers = mIoU of the eight movable classes (car, truck, bus, trailer, "
@@ -310,8 +315,11 @@ def write_report(
     horizons_s: tuple[float, ...],
     header: list[str],
     settings: Sequence[tuple[str, str]] = (("3D-Occ", ""),),
+    extra_md: str = "",
 ) -> str:
-    """Write ``world_model_eval.csv`` and ``.md`` into ``run_dir``; return the text table."""
+    """Write ``world_model_eval.csv`` and ``.md`` into ``run_dir``; return the text table.
+
+    ``extra_md`` (e.g. the motion tables) is appended to the markdown."""
     text, md, csv_text = report_tables(metrics, horizons_s, header, settings)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -323,6 +331,6 @@ def write_report(
             "trajectory itself collides are skipped (CSV: `collision_<source>_gt_skipped`).\n\n"
             + counts
         )
-    (run_dir / f"{REPORT_BASENAME}.md").write_text(md)
+    (run_dir / f"{REPORT_BASENAME}.md").write_text(md + extra_md)
     (run_dir / f"{REPORT_BASENAME}.csv").write_text(csv_text)
     return text

@@ -180,6 +180,9 @@ class StageSettings:
     pose_lr_scale: float = 1.0
     pose_warmup_steps: int = 0
     pose_joint_lr_scale: float | None = None
+    mover_fit_steps: int = 0
+    mover_lr: float = 2e-3
+    mover_batch: int = 256
 
     @property
     def joint_pose_lr_scale(self) -> float:
@@ -248,6 +251,26 @@ def stage_settings(cfg: Any) -> StageSettings:
                 "stage.pose_joint_lr_scale=0 freezes the pose head in the joint training: it "
                 "needs stage.pose_warmup_steps > 0 to be fitted at all"
             )
+    fit = s.get("mover_fit_steps") or 0
+    if not isinstance(fit, int) or isinstance(fit, bool) or fit < 0:
+        raise ValueError(f"stage.mover_fit_steps: expected an int >= 0, got {fit!r}")
+    movers = _choice(s, "movers", "static", MOVERS)
+    if fit and movers != "learned":
+        raise ValueError(
+            f"stage.mover_fit_steps={fit}: fits the mover head of stage.movers=learned, "
+            f"got stage.movers={movers!r}"
+        )
+    if movers == "learned" and not fit and cfg.get("task") != "eval":
+        raise ValueError(
+            "stage.movers=learned: its mover head is fitted before the joint training; set "
+            "stage.mover_fit_steps > 0"
+        )
+    batch = s.get("mover_batch") or 256
+    if not isinstance(batch, int) or isinstance(batch, bool) or batch < 1:
+        raise ValueError(f"stage.mover_batch: expected an int >= 1, got {batch!r}")
+    mover_lr = _number(s, "mover_lr", 2e-3)
+    if mover_lr <= 0:
+        raise ValueError(f"stage.mover_lr: expected a number > 0, got {mover_lr!r}")
     return StageSettings(
         str(ckpt),
         history,
@@ -259,11 +282,14 @@ def stage_settings(cfg: Any) -> StageSettings:
         pose_mirror=mirror,
         pose_anchors=_choice(s, "pose_anchors", "ctr", ANCHORS),
         pose_step_weighting=_choice(s, "pose_step_weighting", "uniform", POSE_STEP_WEIGHTINGS),
-        movers=_choice(s, "movers", "static", MOVERS),
+        movers=movers,
         pose_kinematics=kinematics,
         pose_lr_scale=lr_scale,
         pose_warmup_steps=warmup,
         pose_joint_lr_scale=joint,
+        mover_fit_steps=fit,
+        mover_lr=mover_lr,
+        mover_batch=batch,
     )
 
 

@@ -44,22 +44,25 @@ from torch.utils.data import ConcatDataset, Dataset
 
 from renderworld.data import load_infos
 from renderworld.metrics import PlanningMetric
-from renderworld.precision import autocast_off
-from renderworld.tokenizer import SceneTokenizer, Tokens
+from renderworld.tokenizer import SceneTokenizer
 from renderworld.training.registry import Stage, register_stage, sum_count
 from renderworld.training.stages.common import grid_of, infos_dir
 from renderworld.training.stages.world_model import evaluation as wme
 from renderworld.training.stages.world_model import heading as wmh
 from renderworld.training.stages.world_model import pose_warp as wmp
 from renderworld.training.stages.world_model.checkpoints import CheckpointModels
+from renderworld.training.stages.world_model.forecasts import stage_forecast
 from renderworld.training.stages.world_model.frozen_tokenizers import FrozenTokenizers
+from renderworld.training.stages.world_model.motion import (
+    add_motion_stats,
+    empty_motion_stats,
+    motion_from_stats,
+    write_motion,
+)
+from renderworld.training.stages.world_model.mover_fit import fit_mover_head
 from renderworld.training.stages.world_model.pose_warmup import warm_up_pose_head
 from renderworld.training.stages.world_model.references import reference_forecasts
-from renderworld.training.stages.world_model.report import (
-    CHECKED,
-    CHECKED_HISTORY_COMMAND,
-    HISTORY_COMMAND,
-)
+from renderworld.training.stages.world_model.report import HISTORY_COMMAND, MODEL_MOVERS
 from renderworld.training.stages.world_model.settings import (
     EvalSetting,
     eval_settings,
@@ -71,14 +74,7 @@ from renderworld.training.stages.world_model.settings import (
 )
 from renderworld.training.stages.world_model.windows import WorldModelWindows
 from renderworld.world import (
-    command_indices,
-    constant_turn_rate_poses,
-    constant_velocity_trajectory,
-    copy_paste_forecast,
-    object_constant_velocity_forecast,
     teacher_forcing_split,
-    warp_along_poses,
-    warp_constant_velocity_forecast,
     world_model_loss,
 )
 
@@ -111,12 +107,17 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         self._train_set: Dataset | None = None
         #: Model-free rows' stats by validation set id: (the set, its stats) (see ``evaluate``).
         self._fixed_stats: dict[int, tuple[Any, dict[str, torch.Tensor]]] = {}
+        #: How the evaluated model moves others (its own ``movers``, read at each evaluation).
+        self.model_movers = self.settings.movers
 
     @property
     def forecasters(self) -> tuple[str, ...]:
         """Forecast rows of this evaluation: the model (and its variants) and the baselines."""
         extra = wmp.POSE_METHODS if self.forecaster == "pose_warp" else ()
-        return tuple(m for m in wme.FORECASTERS if m not in wmp.POSE_METHODS or m in extra)
+        if self.forecaster == "pose_warp" and self.model_movers == "learned":
+            extra = (*extra, MODEL_MOVERS)
+        only = (*wmp.POSE_METHODS, MODEL_MOVERS)
+        return tuple(m for m in wme.FORECASTERS if m not in only or m in extra)
 
     @property
     def planners(self) -> tuple[str, ...]:
@@ -169,15 +170,25 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         return train, self._val_set
 
     def warm_start(self, model: nn.Module) -> None:
-        """Fit the pose head alone for ``stage.pose_warmup_steps`` first (pose_warp only)."""
-        steps = self.settings.pose_warmup_steps
-        if self.forecaster != "pose_warp" or steps == 0:
+        """Fit the pose head alone for ``stage.pose_warmup_steps`` first, then the mover head
+        for ``stage.mover_fit_steps`` (pose_warp only)."""
+        steps, st, cfg = self.settings.pose_warmup_steps, self.settings, self.cfg
+        if self.forecaster != "pose_warp" or steps + st.mover_fit_steps == 0:
             return
         if self._train_set is None:
             raise RuntimeError(
-                f"stage.pose_warmup_steps={steps}: no training windows (call build_datasets first)"
+                f"stage.pose_warmup_steps={steps}, stage.mover_fit_steps={st.mover_fit_steps}: "
+                "no training windows (call build_datasets first)"
             )
-        cfg = self.cfg
+        if st.mover_fit_steps:
+            logs = fit_mover_head(
+                model.mover_head, self._train_set, st.history, st.future, self.grid,
+                st.mover_fit_steps, st.mover_lr, st.mover_batch, seed=int(cfg.get("seed") or 0),
+                progress=bool(cfg.trainer.get("progress_bar", True)),
+            )  # fmt: skip
+            log.info(f"mover head fitted alone for {st.mover_fit_steps} steps: {logs}")
+        if steps == 0:
+            return
         logs = warm_up_pose_head(
             self, model, self._train_set, steps,
             lr=float(cfg.optimizer.lr) * self.settings.pose_lr_scale,
@@ -217,80 +228,9 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         headings: dict[str, torch.Tensor] | None = None,
         baselines: bool = True,
     ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
-        """Forecasts and plans of the model and the baselines for one setting's inputs.
-
-        Args:
-            model: the world model of ``setting`` (unwrapped), on the batch's device.
-            batch: a collated batch of :class:`WorldModelWindows` on that device.
-            setting: whose history occupancy (``setting.inputs``) is rolled out.
-            tokens: codes [B, >=history, G, h, w] of those inputs, or None to encode them.
-            headings: if given, filled with ``{planner: [B, S] yaw}`` (radians, current ego
-                frame) of the planners whose plan carries a heading.
-            baselines: False: the model's rows only (their figures are already known).
-
-        Returns:
-            (``{method: [B, S, X, Y, Z] uint8}`` forecasts, ``{method: [B, S, 2]}`` trajectories
-            in metres, current ego frame), methods as in ``report.METHODS``.
-        """
-        st = self.settings
-        h, f = st.history, st.future
-        occ, disp = batch[setting.inputs], batch["ego_displacements"].float()
-        device = disp.device
-        current = occ[:, h - 1]
-        ctr = constant_turn_rate_poses(batch["history_poses"].double(), f)
-        others, plans = {}, {}
-        if baselines:
-            others = {
-                "copy_paste": copy_paste_forecast(current, f),
-                "warp_cv": warp_constant_velocity_forecast(current, disp[:, h - 2], f, self.grid),
-                "warp_ctr": warp_along_poses(current, ctr, self.grid),
-                "warp_object_cv": object_constant_velocity_forecast(
-                    occ[:, :h], batch["history_poses"].double(), f, self.grid
-                ),
-            }
-            plans = {
-                "cv_traj": constant_velocity_trajectory(disp[:, : h - 1], f),
-                "ctr_traj": ctr[..., :2].to(disp.dtype),
-            }
-            if headings is not None:
-                headings.update(cv_traj=torch.zeros_like(ctr[..., 2]), ctr_traj=ctr[..., 2])
-        # The command is derived from the GT future (as VAD / UniAD): "model, command from
-        # history" withholds it, giving the model the command the same rule derives from the
-        # constant-turn-rate extrapolation of the history (what the GT-derived one is worth).
-        held = torch.as_tensor(command_indices(ctr[..., :2].cpu().numpy()), device=device)
-        forecasts, trajs = {}, {}
-        for name, command in (("model", batch["command"].long()), (HISTORY_COMMAND, held)):
-            if self.forecaster == "pose_warp":
-                fc, poses = wmp.pose_forecast(self, model, {**batch, "command": command}, setting)
-                fc = fc if name == "model" else {name: fc["model"]}
-                traj = poses[..., :2]
-                checked = CHECKED if name == "model" else CHECKED_HISTORY_COMMAND
-                trajs[checked], yaw = wmp.checked_plans(self, batch, setting, poses)
-                trajs[checked] = trajs[checked].to(disp.dtype)
-                if headings is not None:
-                    headings[name], headings[checked] = poses[..., 2], yaw
-            else:
-                if tokens is None:
-                    tokens = self.window_tokens(
-                        batch, h, device, setting.inputs, setting.source, setting.tokenizer
-                    )
-                fc, traj = self._token_forecast(model, tokens, disp, command, setting)
-                fc = {name: fc}
-            forecasts.update(fc)
-            trajs[name] = traj.to(disp.dtype)
-        return {**forecasts, **others}, {**trajs, **plans}
-
-    def _token_forecast(self, model, tokens, disp, command, setting):
-        """Token-model forecast [B, S, X, Y, Z] and trajectory [B, S, 2] for one command."""
-        h, f = self.settings.history, self.settings.future
-        tok = self._tokenizer_on(disp.device, setting.tokenizer)
-        ro = model.rollout(tokens[:, :h], disp[:, : h - 1], command, steps=f)
-        with autocast_off():  # the frozen tokenizer's codes in float32 on every device
-            names = tok.cfg.codebook_names
-            frames = [
-                tok.decode(Tokens(ro.tokens[:, k], tok.cfg.codebook_sizes, names)) for k in range(f)
-            ]
-        return torch.stack(frames, dim=1), ro.trajectory
+        """Forecasts and plans of the model and the baselines for one setting's inputs
+        (:func:`~renderworld.training.stages.world_model.forecasts.stage_forecast`)."""
+        return stage_forecast(self, model, batch, setting, tokens, headings, baselines)
 
     def references(self, batch: dict, setting: EvalSetting) -> dict[str, torch.Tensor]:
         """Forecasts [B, S, X, Y, Z] that read the future (reported as references, never as
@@ -321,10 +261,14 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         device = next(raw.parameters()).device
         st, hs = self.settings, self.horizons
         h, f = st.history, st.future
+        self.model_movers = getattr(raw, "movers", "static")
+        pose = self.forecaster == "pose_warp"
         stats: dict[str, torch.Tensor] = {}
         plan: dict[str, PlanningMetric] = {}
         for s in self.eval_settings:
             stats.update(wme.empty_forecast_stats(f, device, s.prefix, self.forecasters))
+            if pose:
+                stats.update(empty_motion_stats(f, device, s.prefix))
             for p in self.planners:
                 plan[f"{s.prefix}{p}"] = PlanningMetric(f, hs, occupancy_grid=self.grid)
                 for split in wme.SPLITS:
@@ -375,6 +319,9 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
                 mine = {p: plan[f"{s.prefix}{p}"] for p in self.planners}
                 wme.update_planning(mine, trajs, batch, target, valid)
                 wme.add_split_l2(stats, trajs, batch["future_traj"], valid, turning, s.prefix)
+                if pose:
+                    sm = self.setting_model(raw, s)
+                    add_motion_stats(stats, sm, batch, s.inputs, h, self.grid, s.prefix)
         for k, vals in sums.items():
             stats.update(sum_count(k, torch.cat(vals) if vals else torch.zeros(0)))
         for key, metric in plan.items():
@@ -397,6 +344,7 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
         out["num_windows"] = float(stats["loss/count"])
         for s in self.eval_settings:
             out.update(wme.setting_metrics(stats, s.prefix, self.horizons, self.grid))
+            out.update(motion_from_stats(stats, self.horizons, s.prefix))
         return out
 
     def write_report(self, metrics: dict[str, float], run_dir: str) -> str | None:
@@ -416,7 +364,8 @@ class WorldModelStage(FrozenTokenizers, CheckpointModels, Stage):
             "collision rate vs GT boxes at horizon, percent (vs GT occupancy in CSV)",
         ]
         settings = [(s.label, s.prefix) for s in self.eval_settings]
-        return wme.write_report(metrics, run_dir, self.horizons, header, settings)
+        motion = write_motion(metrics, run_dir, self.horizons, settings)
+        return wme.write_report(metrics, run_dir, self.horizons, header, settings, motion)
 
     def on_eval_end(self, model: nn.Module, metrics: dict[str, float], run_dir: str) -> None:
         """Pictures of the evaluation into ``run_dir``: BEV forecasts and planned trajectories."""
