@@ -40,7 +40,13 @@ from data_converters.sample_infos import (
 from data_converters.splits import assign_splits
 from renderworld.constants import COMMANDS, LIDAR_NAME
 from renderworld.data import DatasetError, NuScenesReader
-from renderworld.data.infos import INFOS_SCHEMA_VERSION, infos_file, load_infos, write_infos
+from renderworld.data.infos import (
+    INFOS_SCHEMA_VERSION,
+    infos_file,
+    infos_schema,
+    load_infos,
+    write_infos,
+)
 from renderworld.data.labels2d import read_labels2d_params, save_labels2d
 from renderworld.data.occupancy_only import SIM_REPORT_NAME
 from renderworld.geometry import DEVKIT_MIN_DEPTH
@@ -167,6 +173,8 @@ def _fingerprint(tables: TableIndex, scenes: list[SceneFrames], opts, splits) ->
         h.update(f"{p.name}:{st.st_size}:{st.st_mtime_ns};".encode())
     occ = [occ_path(tables, s.name, t) for s in scenes for t in s.tokens]
     h.update(json.dumps([opts.label_params(), splits, occ, opts.labels], sort_keys=True).encode())
+    # Infos written by another schema (columns added or changed) are stale too.
+    h.update(f"{INFOS_SCHEMA_VERSION}:{infos_schema()}".encode())
     return h.hexdigest()
 
 

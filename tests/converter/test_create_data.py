@@ -106,6 +106,20 @@ def test_rerun_skips_and_overwrite_rewrites(small):
     assert after.keys() == before.keys() and all(after[p] != before[p] for p in before)
 
 
+def test_infos_of_another_schema_are_rewritten(small, monkeypatch):
+    import pyarrow as pa
+
+    import data_converters.convert as convert
+
+    create_data(small, VERSION, options=QUIET)
+    schema = convert.infos_schema()
+    older = pa.schema([f for f in schema if f.name != "scene_description"])
+    monkeypatch.setattr(convert, "infos_schema", lambda: older)  # as if an older release wrote it
+    assert create_data(small, VERSION, options=QUIET).infos_written
+    monkeypatch.setattr(convert, "infos_schema", lambda: schema)
+    assert create_data(small, VERSION, options=QUIET).infos_written  # not read, rewritten
+
+
 def test_changed_settings_remake_labels(small):
     create_data(small, VERSION, options=QUIET)
     redo = create_data(small, VERSION, options=ConvertOptions(progress=False, label_size=(30, 40)))
