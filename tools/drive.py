@@ -1,7 +1,8 @@
 """Closed-loop driving in the simulator (Hydra entry point; configs/drive.yaml).
 
     python tools/drive.py [preset=interactions] [planner=PATH/planner.pt]
-        [planners=[log_replay,cv,ctr,rule_based]] [grid=coarse] [out=outputs/drive]
+        [camera_planner=PATH/planner.pt img2occ=PATH/last.pt]
+        [planners=[log_replay,cv,ctr,rule_based,stop]] [grid=coarse] [out=outputs/drive]
         [record=scene-6000]
 
 Builds the preset's scenes (the same worlds ``tools/make_fixtures.py`` writes for that preset
@@ -47,6 +48,8 @@ def drive(cfg: DictConfig) -> dict:
     planners = [make_planner(n) for n in names]
     if cfg.get("planner"):
         planners += make_bundle_planners(str(cfg.planner), grid=grid)
+    if cfg.get("camera_planner"):
+        planners.append(camera_planner(cfg, grid))
     if cfg.get("threads"):
         import torch
 
@@ -85,6 +88,24 @@ def drive(cfg: DictConfig) -> dict:
         print("self-check (log replay perfect on every scene): " + ("passed" if not check else
               "FAILED:\n  " + "\n  ".join(check)))  # fmt: skip
     return {"paths": paths, "self_check": check, "run": run}
+
+
+def camera_planner(cfg: DictConfig, grid):
+    """The Camera setting's row: its bundle's checked plan on Img2Occ's occupancy of the
+    cameras rendered at the ego's actual pose (renderworld.sim.closed_loop.cameras)."""
+    from renderworld.planning import load_planner
+    from renderworld.sim.closed_loop import BundlePlanner
+    from renderworld.sim.closed_loop.cameras import CameraObserver
+    from renderworld.training.stages.img2occ.builders import load_img2occ
+
+    if not cfg.get("img2occ"):
+        raise ValueError("img2occ: camera_planner needs the Img2Occ checkpoint its occupancy is "
+                         "read out of (img2occ=<run>/checkpoints/last.pt)")  # fmt: skip
+    bundle = load_planner(Path(str(cfg.camera_planner)))
+    model, _ = load_img2occ(str(cfg.img2occ))
+    size = tuple(int(v) for v in cfg.camera_image_size)
+    observer = CameraObserver(model, bundle.grid, size)
+    return BundlePlanner(bundle, "world_model_camera", grid, check=True, observer=observer)
 
 
 @hydra.main(version_base=None, config_path="../configs", config_name="drive")

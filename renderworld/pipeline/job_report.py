@@ -172,9 +172,12 @@ def _closed_loop_section(out: Path) -> list[tuple[str, str]]:
         "Each planner drives the interaction split's scenes itself (`tools/drive.py`, "
         "docs/closed_loop.md): it plans every 0.5 s from what it sees at the pose it actually "
         "reached, a kinematic model tracks the plan at 10 Hz, the scripted agents replay their "
-        "trajectories, and the episode ends at the scene's end, a collision or leaving the road. "
-        "PDMS = NC x DAC x (5 TTC + 5 EP + 2 C) / 12 (NAVSIM). Privileged planners read the log "
-        "or the true agent boxes: references, not competitors.\n\n"
+        "trajectories, and the episode ends at the scene's end, an at-fault collision or leaving "
+        "the road. PDMS = NC x DAC x (5 TTC + 5 EP + 2 C) / 12 with NAVSIM's rules. world_model "
+        "drives its plan checked against its own forecast, world_model_raw its plan as is, "
+        "world_model_camera the Camera setting's checked plan on Img2Occ's occupancy of its "
+        "rendered cameras. Privileged planners read the log or the true agent boxes: references, "
+        "not competitors.\n\n"
     )
     pictures = []
     for png in sorted((run / "figures").glob("closed_loop_*.png")):

@@ -280,20 +280,25 @@ def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step
         ("tokenizer_camera", "pseudo_labels"),
         (*wm_inputs, *p.configs("world_model", cam_exp)), p.extra, evaluate=False,
     )  # fmt: skip
-    # The planner the demo trained: tokenizer + world model in one bundle (load_planner).
-    steps.append(
-        Step(
-            "planner",
-            "bundle the world model and its tokenizer as a planner (renderworld.planning)",
-            (sys.executable, "tools/export_planner.py",
-             f"world_model_ckpt={p.ckpt('world_model')}", f"tokenizer_ckpt={p.ckpt('tokenizer')}",
-             f"out={p.out / 'planner' / PLANNER_BUNDLE}"),
-            p.out / "planner",
-            depends_on=("tokenizer", "world_model"),
-            inputs=(*p.code("planning"), p.repo / "renderworld" / "training" / "stages"
-                    / "world_model" / "bundle.py"),
-        )
-    )  # fmt: skip
+    # The planners the demo trained: tokenizer + world model in one bundle (load_planner), of
+    # each setting (the Camera one drives on its cameras in the closed loop).
+    for name, wm, tk, what in (
+        ("planner", "world_model", "tokenizer", "the world model and its tokenizer"),
+        ("planner_camera", "world_model_camera", "tokenizer_camera",
+         "the Camera setting's world model and tokenizer"),
+    ):  # fmt: skip
+        steps.append(
+            Step(
+                name,
+                f"bundle {what} as a planner (renderworld.planning)",
+                (sys.executable, "tools/export_planner.py", f"world_model_ckpt={p.ckpt(wm)}",
+                 f"tokenizer_ckpt={p.ckpt(tk)}", f"out={p.out / name / PLANNER_BUNDLE}"),
+                p.out / name,
+                depends_on=(tk, wm),
+                inputs=(*p.code("planning"), p.repo / "renderworld" / "training" / "stages"
+                        / "world_model" / "bundle.py"),
+            )
+        )  # fmt: skip
     # One evaluation, one table: both settings, model and baselines.
     evaluate = (
         sys.executable, "tools/eval.py", f"experiment={wm_exp}", *p.common, *tok,
@@ -314,7 +319,8 @@ def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step
         steps.append(
             interaction_eval_step(scen, wm_exp, p.ckpt("tokenizer"), p.ckpt("world_model"), p.out)
         )
-        steps.append(closed_loop_step(p.out / "planner" / PLANNER_BUNDLE, p.out, p.repo))
+        camera = (p.out / "planner_camera" / PLANNER_BUNDLE, p.ckpt("img2occ"))
+        steps.append(closed_loop_step(p.out / "planner" / PLANNER_BUNDLE, p.out, p.repo, camera))
     return steps
 
 

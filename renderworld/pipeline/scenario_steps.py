@@ -147,28 +147,36 @@ def interaction_eval_step(
 CLOSED_LOOP_RECORDED = "scene-6000"
 
 
-def closed_loop_step(bundle: Path, out: Path, repo: Path) -> Step:
-    """Drive the interaction split's scenes in closed loop: the reference planners and the main
-    job's planner bundle (``tools/drive.py``; the preset's worlds, rebuilt from its seed); with
-    rerun-sdk installed, one scene's episodes are also written as a Rerun recording."""
+def closed_loop_step(
+    bundle: Path, out: Path, repo: Path, camera: tuple[Path, Path] | None = None
+) -> Step:
+    """Drive the interaction split's scenes in closed loop: the reference planners, the main
+    job's planner bundle (its checked and its raw plan) and, with ``camera`` = (the Camera
+    setting's bundle, Img2Occ's checkpoint), the Camera setting on rendered cameras
+    (``tools/drive.py``; the preset's worlds, rebuilt from its seed); with rerun-sdk installed,
+    one scene's episodes are also written as a Rerun recording."""
     from renderworld.viewer import rerun_available
 
     conf = repo / "configs"
     record = (f"record={CLOSED_LOOP_RECORDED}",) if rerun_available() else ()
+    cams = (f"camera_planner={camera[0]}", f"img2occ={camera[1]}") if camera else ()
     return Step(
         CLOSED_LOOP,
-        "drive the interaction split in closed loop: log replay, CV, CTR, rule-based, world model",
+        "drive the interaction split in closed loop: log replay, CV, CTR, rule-based, stop, the "
+        "world model (checked and raw plans)"
+        + (", the Camera setting on its cameras" if camera else ""),  # fmt: skip
         (
             sys.executable,
             "tools/drive.py",
             "preset=interactions",
             "planners=[log_replay,cv,ctr,rule_based,stop]",
             f"planner={bundle}",
+            *cams,
             f"out={out / CLOSED_LOOP}",
             *record,
         ),  # fmt: skip
         out / CLOSED_LOOP,
-        depends_on=("planner",),
+        depends_on=("planner", *(("planner_camera", "img2occ") if camera else ())),
         inputs=(
             repo / "renderworld" / "sim",
             conf / "sim",

@@ -20,11 +20,18 @@ def test_closed_loop_step_drives_the_interaction_split_with_the_job_bundle(tmp_p
     names = [s.name for s in steps]
     step = steps[names.index("closed_loop")]
     assert names.index("planner") < names.index("closed_loop")
-    assert step.command[1] == "tools/drive.py" and set(step.depends_on) == {"planner"}
+    assert names.index("planner_camera") < names.index("closed_loop")
+    assert step.command[1] == "tools/drive.py"
+    assert set(step.depends_on) == {"planner", "planner_camera", "img2occ"}
     args = dict(a.split("=", 1) for a in step.command[2:])
     assert args["preset"] == "interactions"
     assert args["planner"] == str(tmp_path / "out" / "planner" / "planner.pt")
-    assert args["planners"] == "[log_replay,cv,ctr,rule_based]"
+    # The Camera setting drives on its cameras: its bundle and the Img2Occ that reads them.
+    assert args["camera_planner"] == str(tmp_path / "out" / "planner_camera" / "planner.pt")
+    assert args["img2occ"] == str(tmp_path / "out" / "img2occ" / "checkpoints" / "last.pt")
+    camera = steps[names.index("planner_camera")]
+    assert set(camera.depends_on) == {"tokenizer_camera", "world_model_camera"}
+    assert args["planners"] == "[log_replay,cv,ctr,rule_based,stop]"
     assert step.out_dir == tmp_path / "out" / "closed_loop"
     assert REPO / "configs" / "drive.yaml" in step.inputs
     from renderworld.viewer import rerun_available

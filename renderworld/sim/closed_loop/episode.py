@@ -127,7 +127,8 @@ def run_episode(
         planner: an object with ``name``, ``grid`` (None or the occupancy grid it reads),
             ``reset(world)`` and ``plan(Observation) -> [6, 2]``.
         limits: the car's limits (default :class:`KinematicLimits`).
-        renderer: occupancy renderer on ``planner.grid`` (made here when None and needed).
+        renderer: occupancy renderer on ``planner.grid`` (None: the planner's ``observer`` if
+            it has one, else made here when needed).
         boxes: the world's boxes (made here when None).
 
     Raises:
@@ -142,6 +143,7 @@ def run_episode(
             "frames and one step to drive)"
         )
     grid = getattr(planner, "grid", None)
+    renderer = renderer or getattr(planner, "observer", None)
     if grid is not None and (renderer is None or renderer.grid != grid):
         renderer = OccupancyRenderer(grid)
     boxes = boxes or SceneBoxes(world)

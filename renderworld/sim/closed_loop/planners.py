@@ -240,12 +240,21 @@ class BundlePlanner:
         grid: the run's grid (None: the bundle's); a bundle on another grid is refused.
         check: drive the plan checked against the model's forecast (``check=True`` of
             :meth:`renderworld.planning.PlannerSession.plan`); False: the model's own plan.
+        observer: what the planner sees through, with the
+            :class:`~renderworld.sim.closed_loop.observe.OccupancyRenderer` interface (e.g. the
+            cameras and Img2Occ: :class:`~renderworld.sim.closed_loop.cameras.CameraObserver`);
+            None: the world's occupancy rendered at the ego's pose.
     """
 
     privileged = False
 
     def __init__(
-        self, planner, name: str = "world_model", grid: GridSpec | None = None, check: bool = True
+        self,
+        planner,
+        name: str = "world_model",
+        grid: GridSpec | None = None,
+        check: bool = True,
+        observer=None,
     ):
         from renderworld.planning import Planner, PlannerSession
 
@@ -263,6 +272,7 @@ class BundlePlanner:
         self.name = name
         self.planner = planner
         self.check = bool(check)
+        self.observer = observer
         self.grid = planner.grid
         self._session = PlannerSession(planner)
         self._pushed = -1

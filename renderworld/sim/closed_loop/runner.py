@@ -77,7 +77,9 @@ def run_closed_loop(
         bar = tqdm(total=len(worlds) * len(planners), desc="driving", unit="episode")
     for p in planners:
         run.planners[p.name] = {"privileged": bool(getattr(p, "privileged", False))}
-        renderer = OccupancyRenderer(p.grid) if getattr(p, "grid", None) is not None else None
+        renderer = getattr(p, "observer", None)  # what it sees through (cameras), else GT
+        if renderer is None and getattr(p, "grid", None) is not None:
+            renderer = OccupancyRenderer(p.grid)
         t0 = time.perf_counter()
         eps: list[Episode] = []
         for w, b in zip(worlds, boxes):
