@@ -233,6 +233,8 @@ class Planner:
         commands: list[str],
         forecast: bool = True,
         check: bool = False,
+        cruise: list[float] | None = None,
+        previous: list | None = None,
     ) -> list[PlanResult]:
         """Plan with the pose-warp model from raw history frames (shared by :meth:`plan_batch`
         and :class:`renderworld.planning.PlannerSession`; inputs are assumed validated).
@@ -244,6 +246,10 @@ class Planner:
             commands: B commands.
             forecast: also forecast the occupancy (False: the pose head only).
             check: check the plan against the forecast (:mod:`renderworld.planning.checked`).
+            cruise: B speeds (m/s) the ego drove at recently, for the check (None: each
+                history's fastest step).
+            previous: B previous trajectories carried on to now ([S, 2] or None), for the
+                check (:func:`renderworld.planning.checked.check_plan`).
         """
         b = occ.shape[0]
         s = self.config.future_frames
@@ -267,8 +273,11 @@ class Planner:
                 h_np, p_np = hist.double().cpu().numpy(), poses.double().cpu().numpy()
                 o_np = occ.cpu().numpy()
                 movers = model_forecaster(self.world_model)
+                cruise = [None] * b if cruise is None else cruise
+                previous = [None] * b if previous is None else previous
                 checks = [check_plan(o_np[i], h_np[i], p_np[i], self.grid, self.check_config,
-                                     movers=movers) for i in range(b)]  # fmt: skip
+                                     movers=movers, cruise_speed=cruise[i],
+                                     previous=previous[i]) for i in range(b)]  # fmt: skip
                 ms["check"] = sum(c.timings["check"] for c in checks)
         timings = {**ms, "total": 1e3 * (self._sync() - t0), "batch_size": b}
         out = []

@@ -52,9 +52,16 @@ class CheckConfig:
         ramp_m: path length over which a lateral offset is reached, metres (at least).
         extend_m: straight extension of the path beyond the plan's last waypoint, metres.
         box_margin_m: the ego box is widened by this much on each side for collisions, metres.
+        vulnerable_margin_m: and by this much more for pedestrians, cyclists, motorcyclists.
         drivable_margin_m: the ego box points checked for the drivable area lie this far out.
         ttc_horizon_s: time-to-collision horizon, seconds.
         progress_floor_m: below this much planned progress every candidate's EP is 1.
+        stall_fraction: the plan is stalled when its top speed is below this fraction of the
+            cruise speed while the ego is slower than ``stall_speed`` (m/s); a stalled plan's
+            candidates aim at the cruise speed and progress is measured against the best
+            collision-free on-road candidate's (NAVSIM's reference).
+        stall_speed: see ``stall_fraction``, m/s.
+        offset_cost: score a candidate gives up per metre of lateral offset when chosen.
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -69,9 +76,13 @@ class CheckConfig:
     ramp_m: float = 12.0
     extend_m: float = 60.0
     box_margin_m: float = 0.2
+    vulnerable_margin_m: float = 1.0
     drivable_margin_m: float = 0.0
     ttc_horizon_s: float = 1.0
     progress_floor_m: float = 2.0
+    stall_fraction: float = 0.5
+    stall_speed: float = 2.0
+    offset_cost: float = 0.04
 
 
 class PlanPath:
@@ -125,12 +136,16 @@ class Candidates:
         offset_m: [N] lateral offset, metres.
         speed: [N] the IDM target speed (m/s), the plan's top speed (``plan``) or the
             deceleration (m/s^2, ``brake``).
+        reference_m: the progress (metres) each candidate's EP is measured against: the
+            learned plan's own path length; None for a stalled plan (the best collision-free
+            on-road candidate's then).
     """
 
     waypoints: np.ndarray
     kind: list
     offset_m: np.ndarray
     speed: np.ndarray
+    reference_m: float | None = None
 
 
 def leader(
@@ -145,7 +160,7 @@ def leader(
         cfg: the knobs; horizon: seconds of forecast to look at.
     """
     s = _FRONT + np.arange(0.0, min(path.length, 80.0), 0.5)
-    centre = path.offset(s - _FRONT, d, cfg.ramp_m)
+    centre = path.offset(s, d, cfg.ramp_m)  # where the front bumper gets: arc s of the path
     _, hd = path.at(s)
     half = EGO_WIDTH / 2 + cfg.corridor_margin_m
     taus = np.arange(0.0, horizon + 1e-9, 0.5)
@@ -217,6 +232,7 @@ def make_candidates(
     scene: ForecastScene,
     cfg: CheckConfig,
     dt: float = KEYFRAME_DT,
+    cruise_speed: float | None = None,
 ) -> Candidates:
     """Candidates around a learned plan (module docstring).
 
@@ -227,6 +243,8 @@ def make_candidates(
         scene: the forecast scene (IDM leaders).
         cfg: the knobs.
         dt: seconds between waypoints.
+        cruise_speed: the speed the ego drove at recently (m/s; None: ``speed``): a plan much
+            slower while the ego stands is stalled (``CheckConfig.stall_fraction``).
 
     Returns:
         :class:`Candidates`, offsets in ``cfg.offsets_m`` order, each offset's ``plan`` first,
@@ -238,7 +256,10 @@ def make_candidates(
                     float(np.asarray(plan_yaws)[-1]))  # fmt: skip
     step_speed = np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), plan]), axis=0).T) / dt
     top = float(step_speed.max())
-    targets = [fr * top for fr in cfg.speed_fractions]
+    cruise = speed if cruise_speed is None else float(cruise_speed)
+    stalled = top < cfg.stall_fraction * cruise and speed < cfg.stall_speed
+    aim = cruise if stalled else top
+    targets = [fr * aim for fr in cfg.speed_fractions]
     # Arc length of each waypoint along the path: the path is the polyline through them.
     s_plan = np.cumsum(np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), plan]), axis=0).T))
     horizon = steps * dt + cfg.ttc_horizon_s
@@ -263,4 +284,5 @@ def make_candidates(
             kinds += ["brake"] * len(cfg.brake_decels)
             offs += [d] * len(cfg.brake_decels)
             spd += list(cfg.brake_decels)
-    return Candidates(np.concatenate(wps), kinds, np.array(offs), np.array(spd))
+    reference = None if stalled else float(step_speed.sum() * dt)
+    return Candidates(np.concatenate(wps), kinds, np.array(offs), np.array(spd), reference)

@@ -7,13 +7,15 @@ and the tracked states are scored against the :class:`~renderworld.planning.scen
 
 * ``NC`` (no collision): 0 when, at some step, a forecast obstacle point (a mover at its
   forecast position, or static scenery) lies inside the ego box widened by
-  :attr:`~renderworld.planning.candidates.CheckConfig.box_margin_m`; a mover point in the rear
-  half of the box (something running into the ego from behind) does not count;
+  :attr:`~renderworld.planning.candidates.CheckConfig.box_margin_m` (and by
+  ``vulnerable_margin_m`` more for a pedestrian, cyclist or motorcyclist); a mover point in the
+  rear half of the box (something running into the ego from behind) does not count;
 * ``DAC`` (drivable area): 0 when a corner or edge midpoint of the ego box leaves the drivable
   cells;
-* ``EP`` (progress): distance driven over the learned plan's own (the ``plan`` candidate
-  without offset: the model's intended progress), clipped to [0, 1]; 1 for every candidate
-  when the plan moves less than ``progress_floor_m``;
+* ``EP`` (progress): distance driven over the learned plan's own path length (the model's
+  intended progress), clipped to [0, 1]; over the best collision-free on-road candidate's
+  when the plan is stalled (:class:`~renderworld.planning.candidates.CheckConfig`); 1 for
+  every candidate when that reference is below ``progress_floor_m``;
 * ``TTC``: 0 when, at some step with the ego moving, its box carried on at constant velocity
   and heading for up to ``ttc_horizon_s`` meets a forecast obstacle point ahead of it (within
   30 degrees of its heading) that it does not already touch;
@@ -21,9 +23,10 @@ and the tracked states are scored against the :class:`~renderworld.planning.scen
   comfort bound (:mod:`renderworld.planning.comfort`, the closed loop's own signals);
 * ``score = NC x DAC x (5 EP + 5 TTC + 2 C) / 12``.
 
-The best candidate has the highest score, the earlier one in candidate order on ties (the
-learned plan itself comes first). When every score is 0 the candidate that stays on the
-drivable area and meets an obstacle latest (never, best) is chosen.
+The best candidate has the highest score less ``offset_cost`` per metre of lateral offset (an
+offset has to buy safety or progress: no weaving between equal candidates), the earlier one in
+candidate order on ties (the learned plan itself comes first). When every score is 0 the
+candidate that stays on the drivable area and meets an obstacle latest (never, best) is chosen.
 """
 
 from __future__ import annotations
@@ -155,9 +158,10 @@ def score_candidates(
     keep = _relevant(scene, states, times)
     pts = scene.points_at(times)[:, keep]  # [T + n_ttc, P, 2]
     mover = scene.mover[keep] >= 0
+    pad = cfg.box_margin_m + cfg.vulnerable_margin_m * scene.vulnerable[keep]  # [P] metres
     centre, u, nrm = _box_frames(states)
-    half_l = EGO_LENGTH / 2 + cfg.box_margin_m
-    half_w = EGO_WIDTH / 2 + cfg.box_margin_m
+    half_l = EGO_LENGTH / 2 + pad  # [P]
+    half_w = EGO_WIDTH / 2 + pad
     moving = states[..., 3] > _STOPPED  # [N, T]
     first = np.full(n, np.inf)
     ttc_bad = np.zeros(n, dtype=bool)
@@ -190,18 +194,20 @@ def score_candidates(
     progress = np.concatenate(
         [np.zeros((n, 1)), np.hypot(*np.diff(states[..., :2], axis=1).transpose(2, 0, 1))], 1
     ).sum(1) + np.hypot(*states[:, 0, :2].T)
-    ref = float(progress[0])
-    plan_len = float(np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), wp[0]]), axis=0).T).sum())
-    if plan_len < cfg.progress_floor_m:
+    nc = np.isinf(first).astype(float)
+    ref = cands.reference_m
+    if ref is None:  # a stalled plan: the best collision-free on-road candidate's progress
+        safe = (nc > 0) & dac
+        ref = float(progress[safe].max()) if safe.any() else 0.0
+    if ref < cfg.progress_floor_m:
         ep = np.ones(n)
     else:
-        ep = np.clip(progress / max(ref, 1e-9), 0.0, 1.0)
-    nc = np.isinf(first).astype(float)
+        ep = np.clip(progress / ref, 0.0, 1.0)
     ttc = (~ttc_bad).astype(float)
     c = comfort_ok(states, past).astype(float)
     score = nc * dac * (5 * ep + 5 * ttc + 2 * c) / 12
-    if score.max() > 0:
-        best = int(np.argmax(score))
+    if score.max() > 0:  # a lateral offset must buy more than it costs (no weaving)
+        best = int(np.argmax(score - cfg.offset_cost * np.abs(cands.offset_m)))
     else:  # every candidate collides or leaves the road: on the road, latest contact, progress
         order = np.lexsort((-ep, -np.minimum(first, 1e6), -dac.astype(float)))
         best = int(order[0])

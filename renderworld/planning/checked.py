@@ -33,7 +33,7 @@ from renderworld.planning.scene import (
     forecast_scene,
 )
 
-__all__ = ["CheckedPlan", "check_plan", "current_speed", "past_states"]
+__all__ = ["CheckedPlan", "blend_with_previous", "check_plan", "current_speed", "past_states"]
 
 
 @dataclass
@@ -84,6 +84,24 @@ def past_states(history_poses: np.ndarray, dt: float = KEYFRAME_DT, seconds: flo
     return np.column_stack([sx(ts), sy(ts), syaw(ts), speed])
 
 
+def blend_with_previous(plan: np.ndarray, previous: np.ndarray) -> np.ndarray:
+    """[S, 3] the plan's positions blended with the previous trajectory's, step k of S weighing
+    the plan k / S (the near steps follow the previous trajectory, the far ones the new plan);
+    headings from the blended path's direction (the plan's where it does not move).
+
+    Args:
+        plan: [S, 3] (x, y, yaw), current ego frame.
+        previous: [S, 2] positions at the same times, current ego frame.
+    """
+    s = len(plan)
+    w = (np.arange(1, s + 1) / s)[:, None]
+    xy = w * plan[:, :2] + (1 - w) * np.asarray(previous, dtype=np.float64)
+    d = np.diff(np.concatenate([np.zeros((1, 2)), xy]), axis=0)
+    moving = np.hypot(d[:, 0], d[:, 1]) > 0.05
+    yaw = np.where(moving, np.arctan2(d[:, 1], d[:, 0]), plan[:, 2])
+    return np.column_stack([xy, yaw])
+
+
 def current_speed(history_poses: np.ndarray, dt: float = KEYFRAME_DT) -> float:
     """The ego's speed now (m/s): :func:`past_states`' last speed."""
     return float(past_states(history_poses, dt, seconds=0.0)[-1, 3])
@@ -98,6 +116,8 @@ def check_plan(
     limits: KinematicLimits | None = None,
     movers: MoverForecaster = constant_velocity_displacements,
     dt: float = KEYFRAME_DT,
+    cruise_speed: float | None = None,
+    previous: np.ndarray | None = None,
 ) -> CheckedPlan:
     """Check a learned plan against the forecast (module docstring).
 
@@ -110,6 +130,14 @@ def check_plan(
         limits: the kinematic model's limits.
         movers: the mover forecast (default: each tracked mover at its fitted velocity).
         dt: seconds between frames and waypoints.
+        cruise_speed: the speed the ego drove at recently, m/s (None: the fastest history
+            step's); a much slower plan while the ego stands is stalled
+            (:class:`~renderworld.planning.candidates.CheckConfig`).
+            previous: [S, 2] the trajectory chosen one step before, carried on to now in the
+                current ego frame (:class:`renderworld.planning.PlannerSession` keeps it) or
+                None: the candidates' path then starts on it and ends on the new plan
+                (:func:`blend_with_previous`), so consecutive plans agree where the car is
+                about to drive.
 
     Raises:
         ValueError: naming the argument on a shape mismatch.
@@ -121,12 +149,16 @@ def check_plan(
     hist = np.asarray(history_poses, dtype=np.float64)
     if hist.ndim != 2 or hist.shape[1] != 3 or len(hist) < 2:
         raise ValueError(f"history_poses: expected [H >= 2, 3] (x, y, yaw), got {hist.shape}")
+    if previous is not None:
+        plan = blend_with_previous(plan, previous)
     t0 = time.perf_counter()
     scene = forecast_scene(history_occupancy, hist, grid, len(plan), dt, movers)
     t1 = time.perf_counter()
     past = past_states(hist, dt)
     speed = float(past[-1, 3])
-    cands = make_candidates(plan[:, :2], plan[:, 2], speed, scene, cfg, dt)
+    if cruise_speed is None:
+        cruise_speed = float(np.hypot(*np.diff(hist[:, :2], axis=0).T).max() / dt)
+    cands = make_candidates(plan[:, :2], plan[:, 2], speed, scene, cfg, dt, cruise_speed)
     t2 = time.perf_counter()
     scores = score_candidates(cands, scene, past, cfg, limits, dt)
     t3 = time.perf_counter()

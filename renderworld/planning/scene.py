@@ -32,6 +32,7 @@ from renderworld.world.tracks import MoverTrack, track_movers
 __all__ = [
     "OBSTACLE_CLASS_IDS",
     "OBSTACLE_TOP_M",
+    "VULNERABLE_CLASS_IDS",
     "ForecastScene",
     "MoverForecaster",
     "constant_velocity_displacements",
@@ -46,6 +47,10 @@ OBSTACLE_CLASS_IDS: tuple[int, ...] = (*range(11), OCC3D_CLASSES.index("manmade"
 #: Levels whose bottom lies below this height (metres, ego frame z) can hold an obstacle.
 OBSTACLE_TOP_M = 2.0
 _DRIVEABLE = OCC3D_CLASSES.index("driveable_surface")
+#: Road users the ego keeps a wider berth from: pedestrians, cyclists, motorcyclists.
+VULNERABLE_CLASS_IDS = tuple(
+    OCC3D_CLASSES.index(c) for c in ("pedestrian", "bicycle", "motorcycle")
+)
 
 #: ``(tracks, current [X, Y, Z], history_poses [H, 3], grid, steps, dt) -> [M, steps + 1, 2]``
 #: forecast displacements (metres, 0 at the first sample) of the tracked movers.
@@ -100,6 +105,7 @@ class ForecastScene:
         points: [P, 2] metres, obstacle cell centres at t = 0.
         mover: [P] int, the mover each point belongs to (-1: static scenery).
         agent: [P] bool, points of a road user (a movable class), moving or not.
+        vulnerable: [P] bool, points of a pedestrian, cyclist or motorcyclist.
         displacements: [M, S + 1, 2] metres, each mover's displacement at 0, dt, ... S dt.
         dt: seconds between displacement samples.
         drivable: [X, Y] bool.
@@ -110,6 +116,7 @@ class ForecastScene:
     points: np.ndarray
     mover: np.ndarray
     agent: np.ndarray
+    vulnerable: np.ndarray
     displacements: np.ndarray
     dt: float
     drivable: np.ndarray
@@ -204,6 +211,7 @@ def forecast_scene(
         points=pts.astype(np.float64),
         mover=mover_of[ix, iy],
         agent=movable[ix, iy],
+        vulnerable=np.isin(current, VULNERABLE_CLASS_IDS).any(-1)[ix, iy],
         displacements=disp,
         dt=float(dt),
         drivable=drivable,

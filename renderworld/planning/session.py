@@ -29,6 +29,7 @@ from collections import deque
 import numpy as np
 import torch
 
+from renderworld.constants import KEYFRAME_DT
 from renderworld.planning.api import Planner
 from renderworld.planning.request import (
     PlanResult,
@@ -58,6 +59,8 @@ class PlannerSession:
         self._grid: tuple[int, ...] | None = None
         self._last_encode_ms = 0.0
         self.frames_seen = 0
+        self._cruise = 0.0  # the fastest the ego drove since the last reset, m/s
+        self._previous: tuple[int, np.ndarray] | None = None  # (frames seen, last checked plan)
 
     @property
     def ready(self) -> bool:
@@ -70,6 +73,8 @@ class PlannerSession:
         self._grid = None
         self._last_encode_ms = 0.0
         self.frames_seen = 0
+        self._cruise = 0.0
+        self._previous = None
 
     def push(self, occupancy) -> float:
         """Encode the newest frame and append it to the history (the oldest one drops out).
@@ -127,7 +132,12 @@ class PlannerSession:
                 yaw of each history frame in the current ego frame (last 0); required by a
                 pose-warp world model, ignored by a token world model.
             check: check the plan against the forecast (:meth:`Planner.plan_batch`; pose-warp
-                world models only).
+                world models only). The session remembers the fastest the ego drove since its
+                last reset (its cruise speed): a plan stalled far below it while the ego stands
+                gets candidates that go on at it (:class:`renderworld.planning.CheckConfig`);
+                when the previous checked plan was made one frame before, its path is carried
+                on to now and the new candidates start on it
+                (:func:`renderworld.planning.checked.blend_with_previous`).
 
         Returns:
             :class:`PlanResult`; ``timings["encode"]`` is the encode time of the pushes since
@@ -160,14 +170,32 @@ class PlannerSession:
             yaws = check_yaws(yaws, n)[-h:]
             frames = torch.stack(list(self._tokens))[None]  # [1, H, X, Y, Z]
             self._last_encode_ms = 0.0
+            step = float(np.hypot(disp[:, 0], disp[:, 1]).max()) / KEYFRAME_DT
+            self._cruise = max(self._cruise, step)
+            previous = self._carried_previous(disp, yaws) if check else None
             plan = self.planner._plan_frames
-            return plan(frames, disp[None], yaws[None], [command], forecast, check)[0]
+            result = plan(frames, disp[None], yaws[None], [command], forecast, check,
+                          [self._cruise], [previous])[0]  # fmt: skip
+            if check:
+                self._previous = (self.frames_seen, np.asarray(result.trajectory, np.float64))
+            return result
         self.planner._refuse_check(check)
         history = torch.stack(list(self._tokens))[None]  # [1, H, G, h, w]
         encode_ms, self._last_encode_ms = self._last_encode_ms, 0.0
         return self.planner._plan_tokens(
             history, disp.astype(np.float32)[None], [command], forecast, encode_ms
         )[0]
+
+    def _carried_previous(self, disp: np.ndarray, yaws: np.ndarray) -> np.ndarray | None:
+        """The previous checked trajectory in the current ego frame, one step on ([S, 2]: its
+        positions at +0.5 ... +2.5 s from its frame are this frame's first S - 1, the last one
+        continued), or None when it was not made exactly one frame before."""
+        if self._previous is None or self._previous[0] != self.frames_seen - 1:
+            return None
+        prev = self._previous[1]
+        c, s = np.cos(yaws[-2]), np.sin(yaws[-2])  # the previous frame in the current one
+        xy = prev @ np.array([[c, s], [-s, c]]) - disp[-1].astype(np.float64)
+        return np.concatenate([xy[1:], xy[-1:] + (xy[-1:] - xy[-2:-1])])
 
     def step(
         self, occupancy, ego_displacements, command: str, forecast: bool = True, ego_yaws=None

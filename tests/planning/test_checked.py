@@ -67,7 +67,8 @@ def test_a_parked_car_blocking_the_road_is_stopped_for():
     c = out.candidates
     # The plan as is (30 m in 3 s) would hit it: its own candidate is held back behind it.
     assert c.waypoints[0, -1, 0] < plan[-1, 0] - 5.0
-    assert c.NC[c.best] == 1 and (c.score[c.best] >= c.score).all()
+    chosen = c.score - CheckConfig().offset_cost * np.abs(c.offset_m)  # offsets must pay
+    assert c.NC[c.best] == 1 and (chosen[c.best] >= chosen).all()
     assert out.trajectory[:, 0].max() + 1.1 + 2.042 < car_x  # the box stops short of the car
     np.testing.assert_array_equal(out.trajectory, c.waypoints[c.best].astype(np.float32))
 
@@ -75,7 +76,7 @@ def test_a_parked_car_blocking_the_road_is_stopped_for():
 def test_a_crossing_pedestrian_is_tracked_at_walking_speed_and_braked_for():
     walk = 1.2  # m/s: slower than one coarse voxel (1.6 m) per second
     ped = (PED, lambda t: (18.0, -2.4 + walk * t), (1, 1))  # seen in all five frames
-    occ, poses = history([ped])
+    occ, poses = history([ped], road_half_width=2.0)  # a 3.2 m road: no room to pass it
     scene = forecast_scene(occ, poses, GRID, 6)
     (track,) = scene.tracks
     assert track.moving and track.velocity[1] == pytest.approx(walk, abs=0.5)
@@ -110,3 +111,26 @@ def test_paths_and_config_are_validated():
     with pytest.raises(ValueError, match="history_poses"):
         check_plan(occ, poses[:, :2], straight_plan(), GRID)
     assert CheckConfig().offsets_m[0] == 0.0  # the learned path itself comes first
+
+
+def test_a_new_plan_starts_on_the_previous_one_and_ends_on_its_own():
+    from renderworld.planning.checked import blend_with_previous
+
+    plan = straight_plan()
+    previous = plan[:, :2] + [0.0, 1.2]  # the last plan ran 1.2 m to the left
+    out = blend_with_previous(plan, previous)
+    np.testing.assert_allclose(out[-1, :2], plan[-1, :2])  # the far end: the new plan
+    np.testing.assert_allclose(out[0, :2], [5.0, 1.0])  # the near end: mostly the previous
+    assert (np.diff(out[:, 1]) < 0).all()  # one smooth way from the one to the other
+    assert out[1:, 2].max() < 0  # heading along the blended path: back to the right
+
+
+def test_a_stalled_plan_gets_candidates_at_the_cruise_speed():
+    occ, poses = history()
+    poses[:, 0] = 0.0  # the ego stands (stopped for something that has gone)
+    creep = straight_plan(speed=0.5)
+    c = check_plan(occ, poses, creep, GRID, cruise_speed=10.0).candidates
+    assert max(c.speed[np.array(c.kind) == "idm"]) == pytest.approx(10.0)
+    assert c.progress_m[c.best] > 3 * c.progress_m[0]  # goes on instead of creeping
+    c = check_plan(occ, poses, creep, GRID).candidates  # no cruise speed known: it creeps
+    assert max(c.speed[np.array(c.kind) == "idm"]) == pytest.approx(0.5)
