@@ -103,8 +103,8 @@ def camera_planner(cfg: DictConfig, grid):
                          "read out of (img2occ=<run>/checkpoints/last.pt)")  # fmt: skip
     bundle = load_planner(Path(str(cfg.camera_planner)))
     model, _ = load_img2occ(str(cfg.img2occ))
-    size = tuple(int(v) for v in cfg.camera_image_size)
-    observer = CameraObserver(model, bundle.grid, size)
+    size = cfg.get("camera_image_size")
+    observer = CameraObserver(model, bundle.grid, None if size is None else tuple(size))
     return BundlePlanner(bundle, "world_model_camera", grid, check=True, observer=observer)
 
 

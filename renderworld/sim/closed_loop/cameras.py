@@ -2,11 +2,12 @@
 turned into occupancy by a trained Img2Occ.
 
 The Camera setting's planner sees no ground-truth occupancy: at every keyframe the simulator
-renders the six cameras at the pose the ego actually reached (the fixture's rig and image size,
-``SensorSpec`` of the preset the model was trained on; the scene's weather and night; one
-exposure time, the keyframe's), the images are resized bilinearly to Img2Occ's input size as
-its training data were, and Img2Occ's readout (its stored thresholds and offsets, no rendering)
-gives the occupancy frame, down-sampled by the datasets' rule when the planner's grid is coarser
+renders the six cameras at the pose the ego actually reached (the fixture's rig; the scene's
+weather and night; one exposure time, the keyframe's) directly at Img2Occ's input size, or at a
+given size resized bilinearly to it as its training data were (the same occupancy within 0.2 %
+of the GT-occupied voxels for twice the time, docs/closed_loop.md); Img2Occ's readout (its
+stored thresholds and offsets, no rendering) gives the occupancy frame, down-sampled by the
+datasets' rule when the planner's grid is coarser
 (:func:`renderworld.data.downsample.downsample_occupancy`). :class:`CameraObserver` has the
 :class:`~renderworld.sim.closed_loop.observe.OccupancyRenderer` interface, so a planner with
 ``observer`` set drives on it.
@@ -37,18 +38,22 @@ class CameraObserver:
         img2occ: a trained :class:`renderworld.img2occ.Img2Occ` (eval mode; its ``cfg`` gives
             the input size and its grid).
         grid: the planner's grid (the Img2Occ grid, or an integer down-sampling of it).
-        image_size: (width, height) of the rendered images (the training fixture's).
+        image_size: (width, height) of the rendered images (resized to the input size), or
+            None: rendered at Img2Occ's input size.
         seed: the seed of the camera effects' noise (rain, sensor noise).
 
     Raises:
         ValueError: naming ``grid`` when it is not Img2Occ's grid or a down-sampling of it.
     """
 
-    def __init__(self, img2occ, grid: GridSpec, image_size: tuple[int, int], seed: int = 0):
+    def __init__(
+        self, img2occ, grid: GridSpec, image_size: tuple[int, int] | None = None, seed: int = 0
+    ):
         self.model = img2occ.eval()
         self.grid = grid
-        self.rig = SensorRig.build(int(image_size[0]), int(image_size[1]))
         h_in, w_in = (int(v) for v in img2occ.cfg.input_size)
+        w, h = (w_in, h_in) if image_size is None else (int(v) for v in image_size)
+        self.rig = SensorRig.build(w, h)
         self.input_size = (h_in, w_in)
         own = tuple(img2occ.cfg.grid.shape)
         try:
@@ -84,9 +89,9 @@ class CameraObserver:
         for c, ch in enumerate(CAMERA_NAMES):
             img = render_camera(world, self._caster, self.rig, ch, t, pose, self._rng,
                                 self._report)  # fmt: skip
-            out[c] = np.asarray(
-                Image.fromarray(img).resize((w_in, h_in), Image.Resampling.BILINEAR)
-            )
+            if img.shape[:2] != (h_in, w_in):
+                img = Image.fromarray(img).resize((w_in, h_in), Image.Resampling.BILINEAR)
+            out[c] = np.asarray(img)
         return torch.from_numpy(out).permute(0, 3, 1, 2).float().div_(255.0)[None]
 
     @torch.no_grad()
