@@ -9,6 +9,8 @@ Entity layout (below ``world``, see ``data_layers.py``)::
     world/ego/tokenizer/reconstruction  decode(encode(GT occupancy)) on the tokenizer's grid
     world/ego/plan/planned              planned trajectory t+0.5 ... t+3 s (line + waypoints)
     world/ego/plan/gt                   the GT future ego positions
+    world/ego/movers                    each road user's forecast path over 3 s (pose-warp
+                                        models: the movers the forecast and the checked plan move)
     world/forecast/<s>s                 forecast occupancy at t + s seconds, placed at the
                                         planned pose of that frame (heading from the trajectory)
 
@@ -231,6 +233,8 @@ class ForecastLayer:
         gt = np.vstack([np.zeros((1, 2)), fut[:n]])
         self._log_path(rec, rr, "world/ego/plan/gt", gt, (64, 220, 64), "GT")
         counts["world/ego/plan/gt"] = n
+        if self.planner.kind == "pose_warp":
+            counts["world/ego/movers"] = self._log_movers(rec, rr, item)
         # Each forecast frame in its own predicted ego frame: the model's headings, or (token
         # models) the direction of travel.
         headings = trajectory_headings(traj) if result.yaws is None else result.yaws
@@ -245,6 +249,28 @@ class ForecastLayer:
                 rec, rr, entity, result.occupancy_forecast[k], self.grid, None, self.surface_only
             )
         return counts
+
+    def _log_movers(self, rec, rr, item) -> int:
+        """The forecast movers' paths (centroid, then its forecast displacement at every
+        step) at 1 m above the road, in the current ego frame; returns how many."""
+        from renderworld.constants import OCC3D_CLASSES
+        from renderworld.planning.scene import forecast_scene, model_forecaster
+
+        wm = self.planner.world_model
+        scene = forecast_scene(
+            item["occ"].numpy(), item["history_poses"].double().numpy(), self.grid,
+            wm.config.future_frames, movers=model_forecaster(wm),
+        )  # fmt: skip
+        moving = [i for i, tr in enumerate(scene.tracks) if np.abs(scene.displacements[i]).max()]
+        strips = [
+            np.column_stack([scene.tracks[i].centroid + scene.displacements[i],
+                             np.full(len(scene.displacements[i]), 1.0)]).astype(np.float32)
+            for i in moving
+        ]  # fmt: skip
+        labels = [OCC3D_CLASSES[scene.tracks[i].cls] for i in moving]
+        rec.log("world/ego/movers", rr.LineStrips3D(strips, colors=[(255, 160, 0)],
+                                                     labels=labels, radii=[0.12]))  # fmt: skip
+        return len(strips)
 
     @staticmethod
     def _log_path(rec, rr, entity: str, xy: np.ndarray, colour, label: str) -> None:

@@ -142,3 +142,16 @@ def test_learned_movers_train_score_and_plan_as_the_stage_forecasts(wm_overrides
     for i, r in enumerate(res):
         np.testing.assert_array_equal(r.trajectory, traj["model"][i].numpy())
         np.testing.assert_array_equal(r.occupancy_forecast, fc["model"][i].numpy())
+
+
+def test_behaviour_pictures_take_the_second_window_of_the_first_scene():
+    from renderworld.training.stages.world_model.pictures import behaviour_windows
+
+    def item(scene, behaviour):
+        return {"meta": {"scene": scene,
+                         "scene_description": f"Simulated straight, {behaviour}, day"}}  # fmt: skip
+
+    val = [item("s1", "cruise"), item("s2", "cut in"), item("s2", "cut in"), item("s2", "cut in"),
+           item("s3", "lead brake"), item("s4", "cut in"), item("s4", "cut in")]  # fmt: skip
+    assert behaviour_windows(val) == {"cut_in": 2, "lead_brake": 4}  # s3 holds one window
+    assert behaviour_windows([{"meta": {"scene": "x", "scene_description": "Night"}}]) == {}

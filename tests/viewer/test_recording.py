@@ -260,7 +260,7 @@ def test_a_pose_aware_planner_draws_forecasts_in_its_predicted_frames(
     root, infos = converted
     _, tok, planner = tiny_models
     torch.manual_seed(1)
-    pw = PoseWarpWorldModel(planner.world_model.config, anchors="ctr_cv")
+    pw = PoseWarpWorldModel(planner.world_model.config, anchors="ctr_cv", movers="learned")
     with torch.no_grad():  # a pose head that turns: headings differ from the travel direction
         for p in pw.pose.parameters():
             p.add_(0.05 * torch.randn_like(p))
@@ -273,5 +273,8 @@ def test_a_pose_aware_planner_draws_forecasts_in_its_predicted_frames(
     assert summary.skipped == [], lines
     counts, _ = read_back(out)
     assert sorted(counts[("/world/ego/plan/planned", "LineStrips3D:strips")]) == [4, 5, 6, 7]
+    # The forecast movers: one path per moving road user, at every keyframe with a history.
+    assert len(counts[("/world/ego/movers", "LineStrips3D:strips")]) == 4
+    assert max(counts[("/world/ego/movers", "LineStrips3D:strips")]) > 0
     for entity in FORECASTS:
         assert sorted(counts[(entity, "Boxes3D:centers")]) == [4, 5, 6, 7]

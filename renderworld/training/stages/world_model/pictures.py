@@ -10,6 +10,9 @@
   the GT-pose warp reference (the last two from that setting's input).
 * ``trajectories.png``: a few validation windows spread over the split; GT future, the model's
   plan (first setting) and the constant-velocity baseline over the current GT frame, ego box.
+* ``movers_<behaviour>.png`` for ``cut_in`` and ``lead_brake`` when the split holds such
+  scenes (:func:`behaviour_windows`: the first such scene, its second window): GT, the model,
+  the object-CV warp, and both under the ground-truth poses (the movers alone).
 """
 
 from __future__ import annotations
@@ -34,10 +37,12 @@ from renderworld.world.baselines import constant_turn_rate_poses
 from renderworld.world.movers import bev_components, object_velocities
 
 __all__ = [
+    "BEHAVIOUR_PICTURES",
     "BEV_PNG",
     "MOVERS_PNG",
     "TRAJ_PNG",
     "MoverWindow",
+    "behaviour_windows",
     "mover_window",
     "picture_windows",
     "turning_window",
@@ -45,6 +50,8 @@ __all__ = [
 ]
 
 BEV_PNG = "bev_forecast.png"
+#: Behaviours drawn in a picture of their own (``movers_<behaviour>.png``).
+BEHAVIOUR_PICTURES = ("cut_in", "lead_brake")
 MOVERS_PNG = "bev_movers.png"
 TRAJ_PNG = "trajectories.png"
 
@@ -180,6 +187,24 @@ def mover_window(
     return best
 
 
+def behaviour_windows(val_set, behaviours=BEHAVIOUR_PICTURES) -> dict[str, int]:
+    """``{behaviour: window index}``: the second window of the first scene of each behaviour
+    the split holds (its scenes' descriptions, :func:`renderworld.sim.scene.behaviour_of`),
+    where the scripted interaction of the simulated scenes happens within its 3 s."""
+    from renderworld.sim.scene import behaviour_of
+
+    first: dict[str, tuple[str, list[int]]] = {}  # behaviour -> (its first scene, windows)
+    for i in range(len(val_set)):
+        meta = val_set[i]["meta"]
+        b = behaviour_of(meta.get("scene_description", ""))
+        if b not in behaviours:
+            continue
+        scene, windows = first.setdefault(b, (meta["scene"], []))
+        if meta["scene"] == scene:
+            windows.append(i)
+    return {b: w[1] if len(w) > 1 else w[0] for b, (_, w) in first.items()}
+
+
 def _batch(stage, val_set, idx: list[int], device) -> dict:
     return stage.transfer_batch(default_collate([val_set[i] for i in idx]), device)
 
@@ -256,6 +281,7 @@ def write_pictures(stage: Any, model: torch.nn.Module, val_set, run_dir: Path) -
         )
     )  # fmt: skip
     out.append(_movers_picture(stage, raw, val_set, run_dir, device, steps, cols))
+    out += _behaviour_pictures(stage, raw, val_set, run_dir, device, steps, cols)
 
     first = settings[0]
     idx = picture_windows(len(val_set), 4)
@@ -318,3 +344,29 @@ def _movers_picture(stage, raw, val_set, run_dir: Path, device, steps, cols) -> 
         "the future",
         marks=[pick.centroid_m] if pick.centroid_m is not None else (),
     )  # fmt: skip
+
+
+def _behaviour_pictures(stage, raw, val_set, run_dir: Path, device, steps, cols) -> list[Path]:
+    """``movers_<behaviour>.png`` of :func:`behaviour_windows` (module docstring)."""
+    from renderworld.training.stages.world_model.report import MODEL_MOVERS
+
+    h, first = stage.settings.history, stage.eval_settings[0]
+    out = []
+    for behaviour, i in behaviour_windows(val_set).items():
+        batch = _batch(stage, val_set, [i], device)
+        frames, forecasts = _model_row(stage, raw, batch, first, steps)
+        rows = [_gt_row(batch, h, steps), ("model", frames)]
+        keys = {"warp_object_cv": "object-CV warp"}
+        if MODEL_MOVERS in forecasts:
+            keys[MODEL_MOVERS] = "GT poses + model movers (ref.)"
+        keys["warp_gt_object_cv"] = "GT poses + object-CV movers (ref.)"
+        rows += _other_rows(stage, batch, first, forecasts, steps, keys)
+        scene = batch["meta"]["scene"][0]
+        out.append(
+            bev_forecast_figure(
+                rows, cols, stage.grid, run_dir / f"movers_{behaviour}.png",
+                title=f"{behaviour.replace('_', ' ')}: {scene}, val window {i}; model row at "
+                "t = 0: the tokenized input; the (ref.) rows read the future poses",
+            )
+        )  # fmt: skip
+    return out
