@@ -69,11 +69,14 @@ KNOBS: dict[str, dict[str, Knob]] = {
         ),  # fmt: skip
         "precision": Knob("precision", "str", "decoder precision: float32 or bfloat16"),
         "threads": Knob("threads", "int", "torch intra-op threads"),
+        "check": Knob(
+            "check", "bool", "the plan checked against the model's forecast (false: raw plan)"
+        ),
         "grid": Knob(
             "grid",
             "str",
-            "mini (the main job's 50x50x4 models) or occ3d "
-            "(200x200x16, paper-sized untrained models: latency only)",
+            "mini (the main job's 50x50x4 models), occ3d (200x200x16, paper-sized untrained "
+            "pose-warp models: latency only) or occ3d-checked (the same, checked plan)",
         ),  # fmt: skip
     },
 }

@@ -105,25 +105,29 @@ def occ3d_models() -> tuple:
     )
 
 
-def pose_warp_model(wm):
-    """The pose-warp world model (the main job's kind) of ``wm``'s config, untrained, seed 0;
-    ``wm`` itself when it is one (the demo's checkpoints)."""
+def pose_warp_model(wm, movers: str = "static"):
+    """The pose-warp world model (the main job's kind) of ``wm``'s config, untrained, seed 0,
+    with ``movers`` (``learned``: with a mover head); ``wm`` itself when it is one (the demo's
+    checkpoints)."""
     from renderworld.world.pose import PoseWarpWorldModel
 
     if isinstance(wm, PoseWarpWorldModel):
         return wm
     torch.manual_seed(0)
-    return PoseWarpWorldModel(wm.config, anchors="ctr_cv")  # world_model_mini's anchors
+    return PoseWarpWorldModel(wm.config, anchors="ctr_cv", movers=movers)  # world_model_mini's
 
 
-def session_runner(forecast: bool) -> Callable[[Planner, PlanRequest, PlannerSession], dict]:
+def session_runner(
+    forecast: bool, check: bool = False
+) -> Callable[[Planner, PlanRequest, PlannerSession], dict]:
     """The streaming call of a car's loop: push the request's newest frame (one encode), plan
-    from the session's history; returns ``PlanResult.timings`` + ``wall`` (ms) + ``result``."""
+    from the session's history (``check``: checked against the forecast); returns
+    ``PlanResult.timings`` + ``wall`` (ms) + ``result``."""
 
     def run(planner: Planner, req: PlanRequest, session: PlannerSession) -> dict:
         t0 = time.perf_counter()
         session.push(req.occupancy[-1])
-        res = session.plan(req.ego_displacements, req.command, forecast, req.ego_yaws)
+        res = session.plan(req.ego_displacements, req.command, forecast, req.ego_yaws, check)
         return {**res.timings, "wall": 1e3 * (time.perf_counter() - t0), "result": res}
 
     return run
@@ -153,7 +157,12 @@ def requests_from_windows(batch: dict, history: int) -> list[PlanRequest]:
 
 
 def time_plans(
-    planner: Planner, requests: Sequence[PlanRequest], forecast: bool, repeats: int, warmup: int
+    planner: Planner,
+    requests: Sequence[PlanRequest],
+    forecast: bool,
+    repeats: int,
+    warmup: int,
+    check: bool = False,
 ) -> tuple[float, list[PlanResult]]:
     """Median over requests of the best-of-``repeats`` ms of one streaming plan, batch 1.
 
@@ -171,7 +180,7 @@ def time_plans(
         raise ValueError("requests: expected at least one request")
     if not isinstance(repeats, int) or repeats < 1:
         raise ValueError(f"repeats: expected an int >= 1, got {repeats!r}")
-    run = session_runner(forecast)
+    run = session_runner(forecast, check)
     session = PlannerSession(planner)
     h = session.history_frames
 

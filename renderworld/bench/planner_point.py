@@ -2,11 +2,14 @@
 
 Nothing is trained. Options (the point's ``key=value`` overrides; defaults in brackets):
 ``forecast`` [true] (false: trajectory only), ``precision`` [float32] (bfloat16: the decoder
-under autocast), ``threads`` [1] (torch intra-op threads), ``grid`` [mini]: ``mini`` is the
-bundle of ``world_model_ckpt`` + ``tokenizer_ckpt`` (the main job's, 50x50x4) planning on
-``windows`` validation windows of ``dataset.data_root``; ``occ3d`` is paper-sized untrained
-models at 200x200x16 on street-like requests (``OCC3D_REQUESTS`` of them): latency only, its
-metrics are NaN. ``repeats`` [3] and ``warmup`` [2] set the timing's passes.
+under autocast), ``threads`` [1] (torch intra-op threads), ``check`` [false] (true: the plan
+checked against the forecast, :mod:`renderworld.planning.checked`), ``grid`` [mini]: ``mini`` is
+the bundle of ``world_model_ckpt`` + ``tokenizer_ckpt`` (the main job's, 50x50x4) planning on
+``windows`` validation windows of ``dataset.data_root``; ``occ3d`` is a paper-sized untrained
+AM-VAE and pose-warp world model with a mover head (the main job's kind) at 200x200x16 on
+street-like requests (``OCC3D_REQUESTS`` of them): latency only, its metrics are NaN;
+``occ3d-checked`` the same with ``check`` true. ``repeats`` [3] and ``warmup`` [2] set the
+timing's passes.
 
 ``result.json`` (same fields as a training point's, ``train_s`` 0):
 
@@ -37,6 +40,7 @@ from renderworld.bench.planner_latency import (
     cpu_seconds,
     make_request,
     occ3d_models,
+    pose_warp_model,
     requests_from_windows,
     time_plans,
 )
@@ -48,7 +52,8 @@ __all__ = ["run", "planner_options", "OCC3D_REQUESTS"]
 WARMUP = 2
 REPEATS = 3
 OCC3D_REQUESTS = 2
-_DEFAULTS = {"forecast": "true", "precision": "float32", "threads": "1", "grid": "mini"}
+_DEFAULTS = {"forecast": "true", "precision": "float32", "threads": "1", "grid": "mini",
+             "check": "false"}  # fmt: skip
 
 
 def planner_options(overrides: list[str]) -> dict[str, Any]:
@@ -65,12 +70,17 @@ def planner_options(overrides: list[str]) -> dict[str, Any]:
         raw[key] = value
     if raw["forecast"] not in ("true", "false"):
         raise ValueError(f"forecast: expected true or false, got {raw['forecast']!r}")
-    if raw["grid"] not in ("mini", "occ3d"):
-        raise ValueError(f"grid: expected mini or occ3d, got {raw['grid']!r}")
+    if raw["grid"] not in ("mini", "occ3d", "occ3d-checked"):
+        raise ValueError(f"grid: expected mini, occ3d or occ3d-checked, got {raw['grid']!r}")
+    if raw["check"] not in ("true", "false"):
+        raise ValueError(f"check: expected true or false, got {raw['check']!r}")
+    if raw["grid"] == "occ3d-checked":
+        raw = {**raw, "grid": "occ3d", "check": "true"}
     threads = int(raw["threads"])
     if threads < 1:
         raise ValueError(f"threads: expected an int >= 1, got {threads}")
-    return {**raw, "forecast": raw["forecast"] == "true", "threads": threads,
+    return {**raw, "forecast": raw["forecast"] == "true", "check": raw["check"] == "true",
+            "threads": threads,
             "windows": int(raw.get("windows", 7)), "repeats": int(raw.get("repeats", REPEATS)),
             "warmup": int(raw.get("warmup", WARMUP))}  # fmt: skip
 
@@ -117,7 +127,7 @@ def run(spec: dict[str, Any]) -> dict[str, Any]:
         planner = bundle_planner(wm, tok, **options)
         requests, futures = _val_windows(opts)
         ms, results = time_plans(
-            planner, requests, opts["forecast"], opts["repeats"], opts["warmup"]
+            planner, requests, opts["forecast"], opts["repeats"], opts["warmup"], opts["check"]
         )
         metrics["val/l2_3s"] = _l2_3s(results, futures)
         if opts["forecast"]:
@@ -132,11 +142,13 @@ def run(spec: dict[str, Any]) -> dict[str, Any]:
             metrics["val/forecast_equal"] = equal
     else:
         tok, world = occ3d_models()
+        world = pose_warp_model(world, movers="learned")
         planner = Planner(tok, world, **options)
         h = world.config.history_frames
         requests = [make_request((200, 200, 16), h, np.random.default_rng(i))
                     for i in range(OCC3D_REQUESTS)]  # fmt: skip
-        ms, _ = time_plans(planner, requests, opts["forecast"], opts["repeats"], opts["warmup"])
+        ms, _ = time_plans(planner, requests, opts["forecast"], opts["repeats"], opts["warmup"],
+                           opts["check"])  # fmt: skip
     params = sum(p.numel() for m in (planner.world_model, planner.tokenizer)
                  if isinstance(m, torch.nn.Module) for p in m.parameters())  # fmt: skip
     defaults = {**_DEFAULTS}

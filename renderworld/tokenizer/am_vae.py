@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from renderworld.constants import NUM_OCC3D_CLASSES
+from renderworld.constants import FREE_ID, NUM_OCC3D_CLASSES
 from renderworld.tokenizer.backbone import ClassEmbedding, Decoder, Encoder, VoxelHead
 from renderworld.tokenizer.config import TokenizerConfig
 from renderworld.tokenizer.heads import NON_AIR_IDS, combine_air_mask, scores_to_occupancy
@@ -130,6 +130,41 @@ class SceneTokenizer(nn.Module):
             torch.tensor(cw, dtype=torch.float32) if cw is not None else None,
             persistent=False,
         )
+
+    @torch.no_grad()
+    def init_output_prior(self, class_counts: torch.Tensor) -> None:
+        """Start the output heads at the data's class frequencies (their biases).
+
+        Each height level's scores start at the log of its classes' frequencies (Laplace
+        smoothed: a class never seen starts some 12 nats down instead of level with the rest),
+        the air-mask head's air logit at the logit of its free fraction. Where a short schedule
+        ends then depends less on the seed: a rare class is not predicted by chance early on,
+        and one the data never holds is not predicted at all.
+
+        Args:
+            class_counts: [Z, 18] voxel counts per height level and Occ3D class.
+
+        Raises:
+            ValueError: naming ``class_counts`` on a wrong shape or negative counts.
+        """
+        z = self.cfg.grid_shape[2]
+        counts = torch.as_tensor(class_counts, dtype=torch.float64)
+        if tuple(counts.shape) != (z, NUM_OCC3D_CLASSES) or bool((counts < 0).any()):
+            raise ValueError(
+                f"class_counts: expected [{z}, {NUM_OCC3D_CLASSES}] non-negative counts, got "
+                f"{tuple(counts.shape)}"
+            )
+        counts = counts + 1.0
+        if self.cfg.air_mask_head:
+            free = counts[:, FREE_ID]
+            occupied = counts.sum(1) - free
+            self.air_head.conv.bias.copy_(torch.log(free / occupied).float())
+            non_air = counts[:, list(NON_AIR_IDS)]
+            prior = torch.log(non_air / non_air.sum(1, keepdim=True))
+            self.non_air_head.conv.bias.copy_(prior.reshape(-1).float())
+        else:
+            prior = torch.log(counts / counts.sum(1, keepdim=True))
+            self.class_head.conv.bias.copy_(prior.reshape(-1).float())
 
     # ------------------------------------------------------------------ validation
     def _check_occ(self, occ: torch.Tensor) -> torch.Tensor:

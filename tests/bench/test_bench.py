@@ -251,8 +251,8 @@ def fake_root(tmp_path):
 
 @pytest.mark.parametrize(
     "preset, ranking, count, ranked",
-    [("quick", False, 15, 0), ("standard", False, 23, 0), ("standard", True, 41, 18),
-     ("full", True, 89, 18)],
+    [("quick", False, 16, 0), ("standard", False, 25, 0), ("standard", True, 43, 18),
+     ("full", True, 91, 18)],
 )  # fmt: skip
 def test_shipped_presets_expand(fake_root, tmp_path, preset, ranking, count, ranked):
     data, tok, wm = fake_root

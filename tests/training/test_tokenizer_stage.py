@@ -46,3 +46,27 @@ def test_eval_scores_the_reconstructions_with_renderworld_metrics(
     assert got["val/cam/iou"] == pytest.approx(want_cam["iou_geometry"], abs=1e-12)
     assert got["val/miou"] != pytest.approx(got["val/cam/miou"])  # the mask is applied
     assert 0.0 < got["val/miou"] < 1.0  # a 2-step tokenizer: neither nothing nor everything
+
+
+def test_prior_init_starts_the_heads_at_the_training_frames_class_frequencies(converted, tmp_path):
+    from renderworld.training.stages.tokenizer import TokenizerStage
+
+    over = ["stage=tokenizer", *base._data(converted), f"run_dir={tmp_path}", *base.QUIET,
+            *base.TINY_TOKENIZER]  # fmt: skip
+    stage = TokenizerStage(compose_cfg([*over, "stage.prior_init=true"]))
+    stage.build_datasets(stage.cfg)
+    model = stage.build_model(stage.cfg)
+    before = model.air_head.conv.bias.clone()
+    stage.warm_start(model)
+    # The ground level is never free, the levels above it mostly are.
+    bias = model.air_head.conv.bias
+    assert not torch.equal(before, bias)
+    assert bias[0] < -5.0 and (bias[1:] > 1.0).all()
+    off = TokenizerStage(compose_cfg(over))  # the default: untouched
+    off.build_datasets(off.cfg)
+    plain = off.build_model(off.cfg)
+    b = plain.air_head.conv.bias.clone()
+    off.warm_start(plain)
+    assert torch.equal(b, plain.air_head.conv.bias)
+    with pytest.raises(ValueError, match="stage.prior_init: expected true or false"):
+        TokenizerStage(compose_cfg([*over, "stage.prior_init=3"]))

@@ -27,7 +27,10 @@ from renderworld.training.stages.common import (
     occupancy_metrics,
 )
 
-__all__ = ["TokenizerStage", "OccFrames", "tokenizer_config", "load_tokenizer"]
+__all__ = ["PRIOR_FRAMES", "TokenizerStage", "OccFrames", "tokenizer_config", "load_tokenizer"]
+
+#: Training frames whose class frequencies start the output heads (``stage.prior_init``).
+PRIOR_FRAMES = 64
 
 
 class OccFrames(Dataset):
@@ -83,6 +86,14 @@ def load_tokenizer(path, device: str | torch.device = "cpu") -> SceneTokenizer:
 class TokenizerStage(Stage):
     """Scene tokenizer training (variant from ``stage.model.variant``)."""
 
+    def __init__(self, cfg: Any) -> None:
+        super().__init__(cfg)
+        prior = cfg.stage.get("prior_init", False)
+        if not isinstance(prior, bool):
+            raise ValueError(f"stage.prior_init: expected true or false, got {prior!r}")
+        self.prior_init = prior
+        self._train_set: Dataset | None = None
+
     def build_model(self, cfg: Any) -> nn.Module:
         return build_tokenizer(tokenizer_config(cfg))
 
@@ -92,7 +103,27 @@ class TokenizerStage(Stage):
         root = str(cfg.dataset.data_root)
         train = OccFrames(load_infos(folder, cfg.dataset.train_split), root, grid, occ_root)
         val = OccFrames(load_infos(folder, cfg.dataset.val_split), root, grid, occ_root)
+        self._train_set = train
         return train, val
+
+    def warm_start(self, model: nn.Module) -> None:
+        """``stage.prior_init``: start the output heads at the class frequencies of up to
+        :data:`PRIOR_FRAMES` evenly spaced training frames
+        (:meth:`~renderworld.tokenizer.SceneTokenizer.init_output_prior`)."""
+        if not self.prior_init:
+            return
+        if self._train_set is None:
+            raise RuntimeError("stage.prior_init: no training frames (call build_datasets first)")
+        raw = model.module if hasattr(model, "module") else model
+        n = len(self._train_set)
+        pick = sorted({round(i * (n - 1) / max(PRIOR_FRAMES - 1, 1)) for i in range(PRIOR_FRAMES)})
+        z = raw.cfg.grid_shape[2]
+        counts = torch.zeros(z, 18, dtype=torch.float64)
+        for i in pick[:n]:
+            occ = self._train_set[i]["occ"].long()  # [X, Y, Z]
+            for level in range(z):
+                counts[level] += torch.bincount(occ[..., level].reshape(-1), minlength=18).double()
+        raw.init_output_prior(counts)
 
     def loss(self, model: nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, Any]]:
         out = model(batch["occ"])
