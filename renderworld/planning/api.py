@@ -51,12 +51,13 @@ from renderworld.planning.candidates import CheckConfig
 from renderworld.planning.checked import check_plan
 from renderworld.planning.compiled import is_compile_failure
 from renderworld.planning.pose_warp import (
+    check_tokens,
     default_grid,
     forecast_from_poses,
     history_poses,
     tokenizer_grid_shape,
 )
-from renderworld.planning.request import PlanRequest, PlanResult, as_numpy
+from renderworld.planning.request import PlanRequest, PlanResult, as_numpy, stack_requests
 from renderworld.planning.scene import model_forecaster
 from renderworld.tokenizer import SceneTokenizer
 from renderworld.tokenizer.inference import FastSceneCodec, cache_frames_per_pass
@@ -200,7 +201,8 @@ class Planner:
     def encode(self, occ: torch.Tensor) -> Tokens:
         """Occupancy [N, X, Y, Z] uint8 (on ``device``) -> checked :class:`Tokens` [N, G, h, w]."""
         tokens = self._encode_fn(occ)
-        self._check_tokens(tokens, occ.shape[0])
+        check_tokens(tokens, self.config, occ.shape[0])
+        self._names = tuple(tokens.codebook_names)
         return tokens
 
     def _decode(self, tokens: Tokens) -> torch.Tensor:
@@ -378,32 +380,10 @@ class Planner:
             ValueError: empty list, grids that differ, tokens that do not fit the model, or
                 (pose-warp model) a request without ``ego_yaws`` or off the planner's grid.
         """
-        reqs = list(requests)
-        if not reqs:
-            raise ValueError("requests: expected at least one PlanRequest, got none")
-        for i, r in enumerate(reqs):
-            if not isinstance(r, PlanRequest):
-                raise TypeError(f"requests[{i}]: expected PlanRequest, got {type(r).__name__}")
         if not isinstance(forecast, bool):
             raise TypeError(f"forecast: expected a bool, got {forecast!r}")
-        h = self.config.history_frames
-        grid = as_numpy(reqs[0].occupancy, "occupancy").shape[1:]
-        for i, r in enumerate(reqs):
-            if r.occupancy.shape[0] < h:
-                raise ValueError(
-                    f"requests[{i}].occupancy: the world model needs {h} history frames, "
-                    f"got {r.occupancy.shape[0]}"
-                )
-            if as_numpy(r.occupancy, "occupancy").shape[1:] != grid:
-                raise ValueError(
-                    f"requests[{i}].occupancy: expected grid {grid} like requests[0], "
-                    f"got {r.occupancy.shape[1:]}"
-                )
-        # np.stack copies: the requests' arrays are never written to.
-        occ = np.stack([as_numpy(r.occupancy, "occupancy")[-h:] for r in reqs])
-        disp = np.stack(
-            [as_numpy(r.ego_displacements, "ego_displacements")[-(h - 1) :] for r in reqs]
-        )
+        occ, disp, reqs = stack_requests(requests, self.config.history_frames)
+        h, grid = self.config.history_frames, occ.shape[2:]
         b = len(reqs)
         if self.kind == "pose_warp":
             if grid != tuple(self.grid.shape):
@@ -438,20 +418,3 @@ class Planner:
                 "check: checking a plan against the forecast needs a pose-warp world model "
                 "(stage.forecaster=pose_warp), this planner's is a token world model"
             )
-
-    def _check_tokens(self, tokens, n: int) -> None:
-        cfg = self.config
-        if not isinstance(tokens, Tokens):
-            raise ValueError(f"tokenizer: encode returned {type(tokens).__name__}, expected Tokens")
-        if tuple(tokens.codebook_sizes) != cfg.codebook_sizes:
-            raise ValueError(
-                f"tokenizer: codebook sizes {tokens.codebook_sizes} do not match the world "
-                f"model's {cfg.codebook_sizes}"
-            )
-        want = (n, cfg.num_codebooks, *cfg.token_grid)
-        if tuple(tokens.indices.shape) != want:
-            raise ValueError(
-                f"tokenizer: token indices {tuple(tokens.indices.shape)} do not match the "
-                f"world model's expected {want}"
-            )
-        self._names = tuple(tokens.codebook_names)

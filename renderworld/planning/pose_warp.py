@@ -26,9 +26,39 @@ import numpy as np
 import torch
 
 from renderworld.constants import OCC3D_GRID, GridSpec
+from renderworld.tokenizer.tokens import Tokens
 from renderworld.world.forecast import pose_warp_forecast
 
-__all__ = ["default_grid", "forecast_from_poses", "history_poses", "tokenizer_grid_shape"]
+__all__ = [
+    "check_tokens",
+    "default_grid",
+    "forecast_from_poses",
+    "history_poses",
+    "tokenizer_grid_shape",
+]
+
+
+def check_tokens(tokens, config, n: int) -> None:
+    """Raise ValueError unless a tokenizer's ``encode`` output fits the world model.
+
+    Args:
+        tokens: what ``encode`` returned for n frames (a :class:`Tokens` [n, G, h, w]).
+        config: the world model's config (codebook sizes, ``num_codebooks``, ``token_grid``).
+        n: frames encoded.
+    """
+    if not isinstance(tokens, Tokens):
+        raise ValueError(f"tokenizer: encode returned {type(tokens).__name__}, expected Tokens")
+    if tuple(tokens.codebook_sizes) != config.codebook_sizes:
+        raise ValueError(
+            f"tokenizer: codebook sizes {tokens.codebook_sizes} do not match the world "
+            f"model's {config.codebook_sizes}"
+        )
+    want = (n, config.num_codebooks, *config.token_grid)
+    if tuple(tokens.indices.shape) != want:
+        raise ValueError(
+            f"tokenizer: token indices {tuple(tokens.indices.shape)} do not match the "
+            f"world model's expected {want}"
+        )
 
 
 def tokenizer_grid_shape(tokenizer) -> tuple[int, int, int] | None:

@@ -184,3 +184,42 @@ class PlanResult:
     yaws: np.ndarray | None = None
     raw_trajectory: np.ndarray | None = None
     candidates: object | None = None
+
+
+def stack_requests(requests, history_frames: int) -> tuple[np.ndarray, np.ndarray, list]:
+    """Validate requests of one batch and stack their last ``history_frames`` frames.
+
+    Args:
+        requests: :class:`PlanRequest` objects sharing one grid.
+        history_frames: H, the frames the world model reads.
+
+    Returns:
+        occupancy [B, H, X, Y, Z] uint8 and displacements [B, H-1, 2] (copies: the requests'
+        arrays are never written to), and the requests as a list.
+
+    Raises:
+        TypeError: a request is not a :class:`PlanRequest`.
+        ValueError: no request, too few frames, or grids that differ.
+    """
+    reqs = list(requests)
+    if not reqs:
+        raise ValueError("requests: expected at least one PlanRequest, got none")
+    for i, r in enumerate(reqs):
+        if not isinstance(r, PlanRequest):
+            raise TypeError(f"requests[{i}]: expected PlanRequest, got {type(r).__name__}")
+    h = history_frames
+    grid = as_numpy(reqs[0].occupancy, "occupancy").shape[1:]
+    for i, r in enumerate(reqs):
+        if r.occupancy.shape[0] < h:
+            raise ValueError(
+                f"requests[{i}].occupancy: the world model needs {h} history frames, "
+                f"got {r.occupancy.shape[0]}"
+            )
+        if as_numpy(r.occupancy, "occupancy").shape[1:] != grid:
+            raise ValueError(
+                f"requests[{i}].occupancy: expected grid {grid} like requests[0], "
+                f"got {r.occupancy.shape[1:]}"
+            )
+    occ = np.stack([as_numpy(r.occupancy, "occupancy")[-h:] for r in reqs])
+    disp = np.stack([as_numpy(r.ego_displacements, "ego_displacements")[-(h - 1) :] for r in reqs])
+    return occ, disp, reqs
