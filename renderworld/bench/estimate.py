@@ -35,8 +35,9 @@ STEP_S = {"tokenizer": 0.33, "img2occ": 0.38, "world_model/pose_warp": 0.67,
 #: CPU seconds per point besides its steps (process start, data, the final evaluation on
 #: mini_val, Img2Occ's threshold search on 24 samples, inference timing); the pose-warp world
 #: model's includes its experiment's pose warm-up (3200 pose-only steps: 85 s alone with the
-#: scenario library, frame cache warm, measured 2026-11-26 after the runs above).
-POINT_S = {"tokenizer": 7.0, "img2occ": 76.0, "world_model/pose_warp": 110.0,
+#: scenario library, frame cache warm, measured 2026-11-26 after the runs above) and its mover
+#: head's fit (1500 steps and the tracks they read: ~60 s, 2026-11-27).
+POINT_S = {"tokenizer": 7.0, "img2occ": 76.0, "world_model/pose_warp": 170.0,
            "world_model/tokens": 12.0}  # fmt: skip
 #: Extra CPU seconds of a world-model point that trains on the scenario library: once (its
 #: windows' frames read and encoded) and per step (more frames to load).

@@ -51,6 +51,9 @@ TINY = {
         "stage.future=2",
         "stage.model.embed_dim=16",
         "stage.model.num_heads=2",
+        "stage.pose_warmup_steps=2",
+        "stage.mover_fit_steps=2",
+        "stage.mover_batch=8",
         "trainer.batch_size=2",
     ],  # fmt: skip
     "planner": ["windows=2", "repeats=1", "warmup=0"],
