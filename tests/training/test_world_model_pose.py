@@ -18,7 +18,8 @@ from renderworld.training.stages.world_model.report import (
     HISTORY_COMMAND,
 )
 from renderworld.training.stages.world_model.report import REPORT_BASENAME as REPORT
-from renderworld.world.forecast import warp_current
+from renderworld.world.forecast import movers_of, warp_current
+from renderworld.world.mover_head import MoverHead
 from renderworld.world.pose import PoseWarpWorldModel
 
 from . import test_world_model_stage as base
@@ -43,18 +44,22 @@ def _stage(wm_overrides, tmp_path):
     return stage, model, val_set
 
 
-@pytest.mark.parametrize("movers", ["static", "object_cv"])
+@pytest.mark.parametrize("movers", ["static", "object_cv", "learned"])
 def test_changing_the_future_ground_truth_leaves_the_forecast_unchanged(
     wm_overrides, tmp_path, movers
 ):
     stage, model, val_set = _stage(wm_overrides, tmp_path)
     model.movers = movers
+    if movers == "learned":  # a head that is not the constant-velocity rule
+        torch.manual_seed(0)
+        model.mover_head = MoverHead(model.config.history_frames, model.config.future_frames)
+        torch.nn.init.normal_(model.mover_head.mlp[-1].weight, std=0.5)
     batch = next(iter(DataLoader(val_set, batch_size=2)))
     setting = stage.eval_settings[0]
     h = HISTORY
-    if movers == "object_cv":  # the mover path does move objects in this batch
+    if movers != "static":  # the mover path does move objects in this batch
         args = (batch["occ"][:, :h], batch["history_poses"], batch["future_poses"], stage.grid)
-        assert not torch.equal(warp_current(*args, "object_cv"), warp_current(*args, "static"))
+        assert not torch.equal(warp_current(*args, movers_of(model)), warp_current(*args, "static"))
     yaw, yaw2 = {}, {}
     fc, traj = stage.forecast(model, batch, setting, None, yaw)
     fc2, traj2 = stage.forecast(model, perturb_future(batch, HISTORY), setting, None, yaw2)
