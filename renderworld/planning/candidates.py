@@ -8,13 +8,15 @@ which side, is safe?". For each lateral offset (reached smoothly over :attr:`Che
 of the path) there are:
 
 * ``plan``: the learned plan's own waypoints, shifted by the offset, where it keeps its distance
-  to the leader (below); else held back to where an IDM run at the plan's top speed behind that
-  leader would be;
+  to the leaders (below); else held back to where an IDM run at the plan's top speed behind
+  them would be;
 * ``idm``: the Intelligent Driver Model (Treiber) along the path towards a fraction of the
-  plan's speed, behind the nearest obstacle of the forecast in the ego's corridor (the leader:
-  the first forecast mover or static obstacle whose points enter the corridor, the ego box
-  widened by :attr:`CheckConfig.corridor_margin_m` on each side, before the ego would have
-  passed that place; it moves along the path at its velocity's component, never backwards);
+  plan's speed, behind the leader of each moment, as PDM-Closed simulates it: at every 0.1 s,
+  the nearest forecast obstacle point ahead of the front bumper inside the corridor (the ego box
+  widened by :attr:`CheckConfig.corridor_margin_m` on each side) at that time — a mover where
+  the forecast puts it then, or static scenery — moving along the path at its velocity's
+  component, never backwards (:func:`leaders`). A pedestrian who will have crossed is not
+  waited for; one who will be in the lane is;
 * ``brake``: a constant deceleration to a stop along the path.
 
 Frames: the current ego frame (x forward, y left; metres, seconds, m/s); the ego starts at the
@@ -30,9 +32,11 @@ import numpy as np
 from renderworld.constants import EGO_CENTRE_OFFSET, EGO_LENGTH, EGO_WIDTH, KEYFRAME_DT
 from renderworld.planning.scene import ForecastScene
 
-__all__ = ["CheckConfig", "Candidates", "PlanPath", "leader", "make_candidates"]
+__all__ = ["CheckConfig", "Candidates", "Leaders", "PlanPath", "leaders", "make_candidates"]
 
 _FRONT = EGO_CENTRE_OFFSET + EGO_LENGTH / 2  # rear axle -> front bumper, metres
+_MAX_TURN = np.radians(60.0)  # a path point turning more than this folds the path
+_BEHIND_M = 1.0  # corridor points this far behind the front bumper still lead, metres
 
 
 @dataclass(frozen=True)
@@ -62,6 +66,8 @@ class CheckConfig:
             collision-free on-road candidate's (NAVSIM's reference).
         stall_speed: see ``stall_fraction``, m/s.
         offset_cost: score a candidate gives up per metre of lateral offset when chosen.
+        change_cost: and per metre of mean distance from the previous plan's waypoints (carried
+            on to now), so that consecutive plans agree unless a change buys something.
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -83,21 +89,40 @@ class CheckConfig:
     stall_fraction: float = 0.5
     stall_speed: float = 2.0
     offset_cost: float = 0.04
+    change_cost: float = 0.0
 
 
 class PlanPath:
     """A polyline path parametrised by arc length (metres), current ego frame.
+
+    Points that would fold the path back (a turn of more than :data:`_MAX_TURN` from the
+    previous segment's direction, the first segment's measured from ``start``) are dropped:
+    the path goes forward, as a car does; :attr:`folded` says whether any was.
 
     Args:
         points: [K, 2] metres, starting at the ego (duplicates dropped).
         extend_m: straight extension beyond the last point, along the last segment (or
             ``heading`` when the points do not move).
         heading: direction (radians) when the path has no length.
+        start: direction (radians) of the car at the first point.
     """
 
-    def __init__(self, points: np.ndarray, extend_m: float, heading: float = 0.0):
+    def __init__(self, points: np.ndarray, extend_m: float, heading: float = 0.0,
+                 start: float = 0.0):  # fmt: skip
         pts = np.asarray(points, dtype=np.float64)
-        keep = np.r_[True, np.hypot(*np.diff(pts, axis=0).T) > 1e-3]
+        keep = [0]
+        direction = np.array([np.cos(start), np.sin(start)])
+        self.folded = False
+        for i in range(1, len(pts)):
+            d = pts[i] - pts[keep[-1]]
+            n = float(np.hypot(*d))
+            if n <= 1e-3:
+                continue
+            if d @ direction < np.cos(_MAX_TURN) * n:
+                self.folded = True
+                continue
+            keep.append(i)
+            direction = d / n
         pts = pts[keep]
         if len(pts) >= 2:
             d = pts[-1] - pts[-2]
@@ -108,6 +133,15 @@ class PlanPath:
         self.s = np.r_[0.0, np.cumsum(seg)]
         self.heading = np.arctan2(*np.diff(self.xy, axis=0)[:, ::-1].T)
         self.length = float(self.s[-1])
+
+    def project(self, xy: np.ndarray) -> np.ndarray:
+        """[K] arc lengths (metres) of the path points nearest to positions [K, 2]."""
+        a, d = self.xy[:-1], np.diff(self.xy, axis=0)  # segments [G, 2]
+        rel = np.asarray(xy, dtype=np.float64)[:, None] - a[None]  # [K, G, 2]
+        u = np.clip((rel * d).sum(-1) / np.maximum((d * d).sum(-1), 1e-12), 0.0, 1.0)
+        dist = np.hypot(*(rel - u[..., None] * d).transpose(2, 0, 1))
+        g = dist.argmin(1)
+        return self.s[g] + u[np.arange(len(g)), g] * np.diff(self.s)[g]
 
     def at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(positions [..., 2], headings [...]) at arc lengths ``s`` (clipped to the path)."""
@@ -148,65 +182,111 @@ class Candidates:
     reference_m: float | None = None
 
 
-def leader(
-    scene: ForecastScene, path: PlanPath, d: float, speed: float, cfg: CheckConfig, horizon: float
-) -> tuple[float, float]:
-    """(gap metres, speed along the path m/s) of the IDM leader on a shifted path, or
-    (inf, 0) when the corridor stays clear (module docstring: which obstacle leads).
+@dataclass
+class Leaders:
+    """Forecast obstacles in the ego's corridor over time, along a path.
 
-    Args:
-        scene: the forecast scene.
-        path: the path; d: its lateral offset (metres); speed: the ego's speed (m/s).
-        cfg: the knobs; horizon: seconds of forecast to look at.
+    Attributes:
+        arc: [T, Q] arc length (metres, from the ego's rear axle now) at which each obstacle
+            point lies in the corridor at time ``t * sub_dt`` (inf: outside it then).
+        speed: [T, Q] the point's velocity component along the path there, m/s (never < 0).
+        sub_dt: seconds between rows.
     """
-    s = _FRONT + np.arange(0.0, min(path.length, 80.0), 0.5)
-    centre = path.offset(s, d, cfg.ramp_m)  # where the front bumper gets: arc s of the path
-    _, hd = path.at(s)
-    half = EGO_WIDTH / 2 + cfg.corridor_margin_m
-    taus = np.arange(0.0, horizon + 1e-9, 0.5)
-    pts = scene.points_at(np.r_[taus, taus + 0.1])  # [2 T, P, 2]: positions, 0.1 s later
-    lo, hi = centre.min(0) - half, centre.max(0) + half
-    near = ((pts >= lo) & (pts <= hi)).all(-1).any(0)  # points that ever come near the corridor
-    idx = np.flatnonzero(near)
-    if not len(idx):
-        return (np.inf, 0.0)
+
+    arc: np.ndarray
+    speed: np.ndarray
+    sub_dt: float
+
+    def nearest(self, i: int, front: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(gap [F] metres, speed [F] m/s) of the leader at row ``i`` for front bumpers at arc
+        ``front`` [F] (inf, 0 where none): the nearest point ahead, counting points up to
+        :data:`_BEHIND_M` behind the bumper (they are about to touch it)."""
+        arc = self.arc[min(i, len(self.arc) - 1)]
+        if not arc.size:
+            return np.full(len(front), np.inf), np.zeros(len(front))
+        ahead = arc[None] > front[:, None] - _BEHIND_M  # [F, Q]
+        gaps = np.where(ahead, arc[None] - front[:, None], np.inf)
+        j = gaps.argmin(1)
+        gap = gaps[np.arange(len(front)), j]
+        lead_v = np.where(np.isfinite(gap), self.speed[min(i, len(self.arc) - 1)][j], 0.0)
+        return gap, lead_v
+
+
+def leaders(
+    scene: ForecastScene, path: PlanPath, offsets: tuple, cfg: CheckConfig, horizon: float,
+    sub_dt: float = 0.1,
+) -> list[Leaders]:  # fmt: skip
+    """The :class:`Leaders` of each lateral offset of a path: at every ``sub_dt`` up to
+    ``horizon`` seconds, the forecast obstacle points (movers where the forecast puts them then,
+    static scenery) inside the corridor, the ego box widened by ``cfg.corridor_margin_m`` on each
+    side around the shifted path (points are projected onto the unshifted path; the shift at
+    their arc length decides whether they lie in the shifted corridor).
+    """
+    s = np.arange(0.0, min(path.length, 80.0), 0.5)
+    centre, hd = path.at(s)
+    taus = np.arange(0.0, horizon + 1e-9, sub_dt)
     n = len(taus)
-    p = pts[:n, idx]  # [T, Q, 2]
-    vel = (pts[n:, idx] - p) / 0.1
-    dist = np.hypot(p[..., None, 0] - centre[:, 0], p[..., None, 1] - centre[:, 1])  # [T, Q, K]
-    k = dist.argmin(-1)
-    inside = np.take_along_axis(dist, k[..., None], -1)[..., 0] <= half  # [T, Q]
-    tau = taus[:, None]
-    passed = (tau > 0) & (speed * tau > s[k] - _FRONT + EGO_LENGTH + 2.0)
-    ok = inside & ~passed  # the ego will have passed places it reaches first
-    if not ok.any():
-        return (np.inf, 0.0)
-    along = np.maximum(np.cos(hd[k]) * vel[..., 0] + np.sin(hd[k]) * vel[..., 1], 0.0)
-    gap = np.where(ok, s[k] - _FRONT - along * tau, np.inf)
-    t_i, q_i = np.unravel_index(int(np.argmin(gap)), gap.shape)
-    return (max(float(gap[t_i, q_i]), 0.05), float(along[t_i, q_i]))
+    half = EGO_WIDTH / 2 + cfg.corridor_margin_m
+    reach = half + max(abs(d) for d in offsets)
+    lo, hi = centre.min(0) - reach, centre.max(0) + reach
+
+    def project(p):  # [..., 2] -> arc, lateral offset (metres) relative to the path
+        dx = p[..., None, 0] - centre[:, 0]
+        dy = p[..., None, 1] - centre[:, 1]
+        k = (dx * dx + dy * dy).argmin(-1)
+        c, sn = np.cos(hd[k]), np.sin(hd[k])
+        rx, ry = p[..., 0] - centre[k, 0], p[..., 1] - centre[k, 1]
+        return s[k] + c * rx + sn * ry, -sn * rx + c * ry, c, sn
+
+    static = scene.mover < 0
+    sp = scene.points[static]
+    sp = sp[((sp >= lo) & (sp <= hi)).all(-1)]
+    arc_s, lat_s, _, _ = project(sp)  # static scenery: projected once, standing still
+    moving = np.flatnonzero(~static)
+    arc_m = np.zeros((n, 0))
+    lat_m = np.zeros((n, 0))
+    v_m = np.zeros((n, 0))
+    if len(moving):
+        pts = scene.points_at(np.r_[taus, taus + 0.1])[:, moving]  # [2 T, Qm, 2]
+        near = np.flatnonzero(((pts[:n] >= lo) & (pts[:n] <= hi)).all(-1).any(0))
+        if len(near):
+            p = pts[:n, near]
+            vel = (pts[n:, near] - p) / 0.1
+            arc_m, lat_m, c, sn = project(p)
+            v_m = np.maximum(c * vel[..., 0] + sn * vel[..., 1], 0.0)
+    arc = np.concatenate([np.broadcast_to(arc_s, (n, len(arc_s))), arc_m], 1)
+    lat = np.concatenate([np.broadcast_to(lat_s, (n, len(lat_s))), lat_m], 1)
+    along = np.concatenate([np.zeros((n, len(arc_s))), v_m], 1)
+    u = np.clip(arc / max(cfg.ramp_m, 1e-6), 0.0, 1.0)
+    ramp = u * u * (3 - 2 * u)
+    out = []
+    for d in offsets:
+        inside = (np.abs(lat - d * ramp) <= half) & (arc >= 0.0)
+        keep = inside.any(0)
+        out.append(Leaders(np.where(inside, arc, np.inf)[:, keep], along[:, keep], sub_dt))
+    return out
 
 
-def _idm_arc(v_now, targets, lead, cfg, steps, dt) -> np.ndarray:
+def _idm_arc(v_now, targets, lead: Leaders, cfg, steps, dt) -> np.ndarray:
     """[F, steps] arc lengths (metres) at each waypoint of IDM runs towards each target speed
-    [F] (m/s) behind ``lead`` (gap, speed)."""
+    [F] (m/s), each behind the leader its own position and the time give (:class:`Leaders`)."""
     f = len(targets)
-    v = np.full(f, v_now)
+    v = np.full(f, v_now, dtype=np.float64)
     s = np.zeros(f)
     v0 = np.maximum(np.asarray(targets, dtype=np.float64), 0.1)
-    gap0, v_l = lead
-    sub = 0.1
+    sub = lead.sub_dt
     n_sub = int(round(dt / sub))
     out = np.empty((f, steps))
     for k in range(steps):
         for j in range(n_sub):
-            t = (k * n_sub + j) * sub
             acc = cfg.a_max * (1 - (v / v0) ** 4)
-            if np.isfinite(gap0):
-                gap = np.maximum(gap0 + v_l * t - s, 0.05)
+            gap, v_l = lead.nearest(k * n_sub + j, s + _FRONT)
+            has = np.isfinite(gap)
+            if has.any():
+                g = np.maximum(np.where(has, gap, 1.0), 0.05)
                 dv = v - v_l
                 s_star = cfg.s0 + v * cfg.headway + v * dv / (2 * np.sqrt(cfg.a_max * cfg.b))
-                acc = acc - cfg.a_max * (np.maximum(s_star, 0.0) / gap) ** 2
+                acc = acc - np.where(has, cfg.a_max * (np.maximum(s_star, 0.0) / g) ** 2, 0.0)
             acc = np.maximum(acc, cfg.idm_min_accel)
             v_new = np.maximum(v + acc * sub, 0.0)
             s = s + 0.5 * (v + v_new) * sub
@@ -262,14 +342,17 @@ def make_candidates(
     targets = [fr * aim for fr in cfg.speed_fractions]
     # Arc length of each waypoint along the path: the path is the polyline through them.
     s_plan = np.cumsum(np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), plan]), axis=0).T))
-    horizon = steps * dt + cfg.ttc_horizon_s
+    if path.folded:  # the plan's timing along the forward path: never backwards
+        s_plan = np.maximum.accumulate(path.project(plan))
     wps, kinds, offs, spd = [], [], [], []
-    for d in cfg.offsets_m:
-        lead = leader(scene, path, d, speed, cfg, horizon)
-        s_cap = s_plan
-        if np.isfinite(lead[0]):  # the plan, no farther than IDM would go behind the leader
-            s_cap = np.minimum(s_plan, _idm_arc(speed, [max(top, speed)], lead, cfg, steps, dt)[0])
-        as_planned = d == 0 and s_cap is s_plan  # the learned waypoints themselves, exactly
+    leads = leaders(scene, path, cfg.offsets_m, cfg, steps * dt)
+    for d, lead in zip(cfg.offsets_m, leads):
+        # The plan, no farther than IDM at the plan's top speed would go behind the leaders.
+        s_cap = np.minimum(s_plan, _idm_arc(speed, [max(top, speed)], lead, cfg, steps, dt)[0])
+        if np.allclose(s_cap, s_plan, rtol=0, atol=1e-9):
+            s_cap = s_plan
+        # The learned waypoints themselves, exactly, where nothing changed them.
+        as_planned = d == 0 and s_cap is s_plan and not path.folded
         wps.append(plan[None] if as_planned else path.offset(s_cap, d, cfg.ramp_m)[None])
         kinds.append("plan")
         offs.append(d)

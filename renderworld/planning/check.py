@@ -9,7 +9,8 @@ and the tracked states are scored against the :class:`~renderworld.planning.scen
   forecast position, or static scenery) lies inside the ego box widened by
   :attr:`~renderworld.planning.candidates.CheckConfig.box_margin_m` (and by
   ``vulnerable_margin_m`` more for a pedestrian, cyclist or motorcyclist); a mover point in the
-  rear half of the box (something running into the ego from behind) does not count;
+  rear half of the box (something running into the ego from behind) does not count, nor does a
+  contact while the ego stands (at most 0.05 m/s: NAVSIM's rule, as in the closed loop);
 * ``DAC`` (drivable area): 0 when a corner or edge midpoint of the ego box leaves the drivable
   cells;
 * ``EP`` (progress): distance driven over the learned plan's own path length (the model's
@@ -23,8 +24,9 @@ and the tracked states are scored against the :class:`~renderworld.planning.scen
   comfort bound (:mod:`renderworld.planning.comfort`, the closed loop's own signals);
 * ``score = NC x DAC x (5 EP + 5 TTC + 2 C) / 12``.
 
-The best candidate has the highest score less ``offset_cost`` per metre of lateral offset (an
-offset has to buy safety or progress: no weaving between equal candidates), the earlier one in
+The best candidate has the highest score less ``offset_cost`` per metre of lateral offset and
+``change_cost`` per metre of mean distance from the previous plan (an offset or a change has to
+buy safety or progress: no weaving or dithering between equal candidates), the earlier one in
 candidate order on ties (the learned plan itself comes first). When every score is 0 the
 candidate that stays on the drivable area and meets an obstacle latest (never, best) is chosen.
 """
@@ -37,7 +39,12 @@ import numpy as np
 
 from renderworld.constants import EGO_CENTRE_OFFSET, EGO_LENGTH, EGO_WIDTH, KEYFRAME_DT
 from renderworld.planning.candidates import Candidates, CheckConfig
-from renderworld.planning.comfort import COMFORT_BOUNDS, comfort_signals
+from renderworld.planning.comfort import (
+    COMFORT_BOUNDS,
+    COMFORT_STRIDE,
+    COMFORT_WINDOW,
+    comfort_signals,
+)
 from renderworld.planning.kinematics import SIM_DT, KinematicLimits
 from renderworld.planning.scene import ForecastScene
 from renderworld.planning.tracking import track_plans
@@ -89,23 +96,26 @@ class CandidateScores:
         ]  # fmt: skip
 
 
-def comfort_ok(states: np.ndarray, past: np.ndarray) -> np.ndarray:
+def comfort_ok(states: np.ndarray, past: np.ndarray, stride: int = COMFORT_STRIDE) -> np.ndarray:
     """[N] bool: candidates comfortable by NAVSIM's bounds (:mod:`renderworld.planning.comfort`).
 
-    Each candidate's tracked states [N, T, 4] follow the ego's past states [n, 4] (the last one:
-    now) in one window, so the filters see where the motion comes from; the quantities are
-    judged from now on.
+    The closed loop judges windows that start at every plan (every ``stride`` states), so a
+    candidate's tracked states [N, T, 4] are judged in each window the ego's past states [n, 4]
+    (the last one: now) and the candidate make together: one starting now and one starting at
+    each earlier plan within the past (the filters see where the motion comes from and where
+    it starts); the quantities are judged from now on.
     """
     n = states.shape[0]
     past = np.broadcast_to(past[None], (n, *past.shape))
-    window = np.concatenate([past, states], axis=1)
-    if window.shape[1] < 5:
-        return np.ones(n, dtype=bool)
-    q = comfort_signals(window)
-    k = past.shape[1] - 1
     ok = np.ones(n, dtype=bool)
-    for name, (lo, hi) in COMFORT_BOUNDS.items():
-        ok &= ((q[name][:, k:] > lo) & (q[name][:, k:] < hi)).all(1)
+    for start in range(past.shape[1] - 1, -1, -stride):
+        window = np.concatenate([past[:, start:], states], axis=1)[:, :COMFORT_WINDOW]
+        if window.shape[1] < 5:
+            continue
+        q = comfort_signals(window)
+        k = past.shape[1] - 1 - start
+        for name, (lo, hi) in COMFORT_BOUNDS.items():
+            ok &= ((q[name][:, k:] > lo) & (q[name][:, k:] < hi)).all(1)
     return ok
 
 
@@ -134,6 +144,7 @@ def score_candidates(
     cfg: CheckConfig,
     limits: KinematicLimits | None = None,
     dt: float = KEYFRAME_DT,
+    previous: np.ndarray | None = None,
 ) -> CandidateScores:
     """Track and score candidates (module docstring).
 
@@ -145,6 +156,8 @@ def score_candidates(
         cfg: the knobs.
         limits: the kinematic model's limits (default :class:`KinematicLimits`).
         dt: seconds between waypoints.
+        previous: [S, 2] the previous plan's waypoints carried on to now (metres, current ego
+            frame) or None: candidates pay ``cfg.change_cost`` per metre of mean distance to it.
     """
     limits = limits or KinematicLimits()
     wp = cands.waypoints
@@ -171,7 +184,7 @@ def score_candidates(
         lat = (rel * nrm[:, :, None]).sum(-1)
         inside = (np.abs(along) <= half_l) & (np.abs(lat) <= half_w)
         rear = mover[None, None] & (along < 0)
-        hit = (inside & ~rear).any(-1)  # [N, T]
+        hit = (inside & ~rear).any(-1) & moving  # [N, T]: a standing ego is not at fault
         t_hit = np.where(hit, np.arange(1, steps + 1)[None] * SIM_DT, np.inf)
         first = t_hit.min(1)
         touching = inside.any(1)  # [N, P] points the box already meets: not a TTC event
@@ -206,8 +219,12 @@ def score_candidates(
     ttc = (~ttc_bad).astype(float)
     c = comfort_ok(states, past).astype(float)
     score = nc * dac * (5 * ep + 5 * ttc + 2 * c) / 12
-    if score.max() > 0:  # a lateral offset must buy more than it costs (no weaving)
-        best = int(np.argmax(score - cfg.offset_cost * np.abs(cands.offset_m)))
+    if score.max() > 0:  # a lateral offset or a change of plan must buy more than it costs
+        cost = cfg.offset_cost * np.abs(cands.offset_m)
+        if previous is not None and cfg.change_cost:
+            change = np.hypot(*(wp - np.asarray(previous, dtype=np.float64)[None]).T).mean(0)
+            cost = cost + cfg.change_cost * change
+        best = int(np.argmax(score - cost))
     else:  # every candidate collides or leaves the road: on the road, latest contact, progress
         order = np.lexsort((-ep, -np.minimum(first, 1e6), -dac.astype(float)))
         best = int(order[0])

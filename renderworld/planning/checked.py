@@ -160,7 +160,7 @@ def check_plan(
         cruise_speed = float(np.hypot(*np.diff(hist[:, :2], axis=0).T).max() / dt)
     cands = make_candidates(plan[:, :2], plan[:, 2], speed, scene, cfg, dt, cruise_speed)
     t2 = time.perf_counter()
-    scores = score_candidates(cands, scene, past, cfg, limits, dt)
+    scores = score_candidates(cands, scene, past, cfg, limits, dt, previous)
     t3 = time.perf_counter()
     b = scores.best
     traj = scores.waypoints[b]
