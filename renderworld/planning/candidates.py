@@ -68,6 +68,8 @@ class CheckConfig:
         offset_cost: score a candidate gives up per metre of lateral offset when chosen.
         change_cost: and per metre of mean distance from the previous plan's waypoints (carried
             on to now), so that consecutive plans agree unless a change buys something.
+        discomfort_cost: and per unit of its worst comfort quantity beyond the bound (a
+            fraction of it), so that the least uncomfortable wins where none is comfortable.
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -90,6 +92,7 @@ class CheckConfig:
     stall_speed: float = 2.0
     offset_cost: float = 0.04
     change_cost: float = 0.0
+    discomfort_cost: float = 0.1
 
 
 class PlanPath:
@@ -328,7 +331,8 @@ def make_candidates(
 
     Returns:
         :class:`Candidates`, offsets in ``cfg.offsets_m`` order, each offset's ``plan`` first,
-        then the IDM runs (fastest first), then the brakes (gentlest first).
+        then the IDM runs (fastest first), then the brakes
+        (gentlest first).
     """
     plan = np.asarray(plan, dtype=np.float64)
     steps = plan.shape[0]
@@ -347,7 +351,9 @@ def make_candidates(
     wps, kinds, offs, spd = [], [], [], []
     leads = leaders(scene, path, cfg.offsets_m, cfg, steps * dt)
     for d, lead in zip(cfg.offsets_m, leads):
-        # The plan, no farther than IDM at the plan's top speed would go behind the leaders.
+        # The plan, no farther than IDM at the plan's top speed would go behind the leaders
+        # (its headway is the margin the forecast needs: the exact plan beside it, tried on the
+        # planner dev split, collided more; docs/planner.md).
         s_cap = np.minimum(s_plan, _idm_arc(speed, [max(top, speed)], lead, cfg, steps, dt)[0])
         if np.allclose(s_cap, s_plan, rtol=0, atol=1e-9):
             s_cap = s_plan

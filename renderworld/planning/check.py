@@ -49,7 +49,7 @@ from renderworld.planning.kinematics import SIM_DT, KinematicLimits
 from renderworld.planning.scene import ForecastScene
 from renderworld.planning.tracking import track_plans
 
-__all__ = ["CandidateScores", "comfort_ok", "score_candidates"]
+__all__ = ["CandidateScores", "comfort_excess", "comfort_ok", "score_candidates"]
 
 _TTC_CONE = np.radians(30.0)
 _STOPPED = 0.05  # m/s
@@ -68,6 +68,8 @@ class CandidateScores:
         NC, DAC, EP, TTC, C, score: [N] sub-scores and the aggregate (module docstring).
         progress_m: [N] distance driven, metres.
         first_contact_s: [N] time of the first contact with the forecast (inf: none).
+        choice: [N] what the choice maximises: the score less the offset, change and
+            discomfort costs (module docstring); all equal to the score where every score is 0.
         best: index of the chosen candidate.
     """
 
@@ -84,11 +86,12 @@ class CandidateScores:
     score: np.ndarray
     progress_m: np.ndarray
     first_contact_s: np.ndarray
+    choice: np.ndarray
     best: int
 
     def table(self) -> list[dict]:
         """One dict per candidate (kind, offset, speed and every score), for printing."""
-        keys = ("NC", "DAC", "EP", "TTC", "C", "score", "progress_m", "first_contact_s")
+        keys = ("NC", "DAC", "EP", "TTC", "C", "score", "choice", "progress_m", "first_contact_s")
         return [
             {"kind": k, "offset_m": float(self.offset_m[i]), "speed": float(self.speed[i]),
              **{n: float(getattr(self, n)[i]) for n in keys}, "best": i == self.best}
@@ -96,8 +99,9 @@ class CandidateScores:
         ]  # fmt: skip
 
 
-def comfort_ok(states: np.ndarray, past: np.ndarray, stride: int = COMFORT_STRIDE) -> np.ndarray:
-    """[N] bool: candidates comfortable by NAVSIM's bounds (:mod:`renderworld.planning.comfort`).
+def comfort_excess(states: np.ndarray, past: np.ndarray, stride: int = COMFORT_STRIDE):
+    """[N] how far each candidate's worst comfort quantity goes, as a fraction of its NAVSIM
+    bound (:mod:`renderworld.planning.comfort`): below 1 is comfortable.
 
     The closed loop judges windows that start at every plan (every ``stride`` states), so a
     candidate's tracked states [N, T, 4] are judged in each window the ego's past states [n, 4]
@@ -107,7 +111,7 @@ def comfort_ok(states: np.ndarray, past: np.ndarray, stride: int = COMFORT_STRID
     """
     n = states.shape[0]
     past = np.broadcast_to(past[None], (n, *past.shape))
-    ok = np.ones(n, dtype=bool)
+    worst = np.zeros(n)
     for start in range(past.shape[1] - 1, -1, -stride):
         window = np.concatenate([past[:, start:], states], axis=1)[:, :COMFORT_WINDOW]
         if window.shape[1] < 5:
@@ -115,8 +119,16 @@ def comfort_ok(states: np.ndarray, past: np.ndarray, stride: int = COMFORT_STRID
         q = comfort_signals(window)
         k = past.shape[1] - 1 - start
         for name, (lo, hi) in COMFORT_BOUNDS.items():
-            ok &= ((q[name][:, k:] > lo) & (q[name][:, k:] < hi)).all(1)
-    return ok
+            x = q[name][:, k:]
+            ratio = np.maximum(np.where(x > 0, x / hi, x / lo), 0.0).max(1)
+            outside = ~((x > lo) & (x < hi)).all(1)  # strictly inside, as NAVSIM judges
+            worst = np.maximum(worst, np.where(outside, np.maximum(ratio, 1.0), ratio))
+    return worst
+
+
+def comfort_ok(states: np.ndarray, past: np.ndarray, stride: int = COMFORT_STRIDE) -> np.ndarray:
+    """[N] bool: candidates comfortable by NAVSIM's bounds (:func:`comfort_excess` below 1)."""
+    return comfort_excess(states, past, stride) < 1.0
 
 
 def _box_frames(states: np.ndarray):
@@ -217,19 +229,23 @@ def score_candidates(
     else:
         ep = np.clip(progress / ref, 0.0, 1.0)
     ttc = (~ttc_bad).astype(float)
-    c = comfort_ok(states, past).astype(float)
+    excess = comfort_excess(states, past)
+    c = (excess < 1.0).astype(float)
     score = nc * dac * (5 * ep + 5 * ttc + 2 * c) / 12
     if score.max() > 0:  # a lateral offset or a change of plan must buy more than it costs
         cost = cfg.offset_cost * np.abs(cands.offset_m)
+        cost = cost + cfg.discomfort_cost * np.maximum(excess - 1.0, 0.0)
         if previous is not None and cfg.change_cost:
             change = np.hypot(*(wp - np.asarray(previous, dtype=np.float64)[None]).T).mean(0)
             cost = cost + cfg.change_cost * change
-        best = int(np.argmax(score - cost))
+        choice = score - cost
+        best = int(np.argmax(choice))
     else:  # every candidate collides or leaves the road: on the road, latest contact, progress
+        choice = score
         order = np.lexsort((-ep, -np.minimum(first, 1e6), -dac.astype(float)))
         best = int(order[0])
     return CandidateScores(
         kind=list(cands.kind), offset_m=cands.offset_m, speed=cands.speed, waypoints=wp,
         states=states, NC=nc, DAC=dac.astype(float), EP=ep, TTC=ttc, C=c, score=score,
-        progress_m=progress, first_contact_s=first, best=best,
+        progress_m=progress, first_contact_s=first, choice=choice, best=best,
     )  # fmt: skip
