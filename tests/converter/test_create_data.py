@@ -223,7 +223,13 @@ def test_cli_runs_end_to_end(small, tmp_path):
         "sweeps=1",
         "progress=false",
     ]
+    # The tool must find the package without the repo on PYTHONPATH; other entries (where an
+    # installation keeps its packages, as on the GPU machines) stay.
+    keep = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep)
+            if p and Path(p).resolve() != REPO.resolve()]  # fmt: skip
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    if keep:
+        env["PYTHONPATH"] = os.pathsep.join(keep)
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "samples per split: train: 3" in proc.stdout
