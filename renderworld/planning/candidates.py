@@ -70,6 +70,13 @@ class CheckConfig:
             on to now), so that consecutive plans agree unless a change buys something.
         discomfort_cost: and per unit of its worst comfort quantity beyond the bound (a
             fraction of it), so that the least uncomfortable wins where none is comfortable.
+        continuous_start: every candidate starts with the ego's lateral acceleration now
+            (:func:`renderworld.planning.checked.continue_lateral_accel`), so that the heading
+            rate does not jump where one plan takes over from the last.
+        continuous_min_speed: ... while the ego is faster than this, m/s (a standing car has
+            no heading rate to go on with).
+        path_spacing_m: the path keeps only plan points at least this far apart, metres: a slow
+            plan's centimetre wiggles would otherwise turn the car back and forth.
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -93,6 +100,9 @@ class CheckConfig:
     offset_cost: float = 0.04
     change_cost: float = 0.0
     discomfort_cost: float = 0.1
+    continuous_start: bool = True
+    continuous_min_speed: float = 0.5
+    path_spacing_m: float = 1.0
 
 
 class PlanPath:
@@ -100,7 +110,8 @@ class PlanPath:
 
     Points that would fold the path back (a turn of more than :data:`_MAX_TURN` from the
     previous segment's direction, the first segment's measured from ``start``) are dropped:
-    the path goes forward, as a car does; :attr:`folded` says whether any was.
+    the path goes forward, as a car does; :attr:`folded` says whether any was. So are points
+    within ``spacing_m`` of the last point kept (:attr:`thinned`).
 
     Args:
         points: [K, 2] metres, starting at the ego (duplicates dropped).
@@ -108,18 +119,20 @@ class PlanPath:
             ``heading`` when the points do not move).
         heading: direction (radians) when the path has no length.
         start: direction (radians) of the car at the first point.
+        spacing_m: the least distance between consecutive points kept, metres.
     """
 
     def __init__(self, points: np.ndarray, extend_m: float, heading: float = 0.0,
-                 start: float = 0.0):  # fmt: skip
+                 start: float = 0.0, spacing_m: float = 1e-3):  # fmt: skip
         pts = np.asarray(points, dtype=np.float64)
         keep = [0]
         direction = np.array([np.cos(start), np.sin(start)])
-        self.folded = False
+        self.folded = self.thinned = False
         for i in range(1, len(pts)):
             d = pts[i] - pts[keep[-1]]
             n = float(np.hypot(*d))
-            if n <= 1e-3:
+            if n <= max(spacing_m, 1e-3):
+                self.thinned = self.thinned or n > 1e-3
                 continue
             if d @ direction < np.cos(_MAX_TURN) * n:
                 self.folded = True
@@ -337,7 +350,7 @@ def make_candidates(
     plan = np.asarray(plan, dtype=np.float64)
     steps = plan.shape[0]
     path = PlanPath(np.concatenate([np.zeros((1, 2)), plan]), cfg.extend_m,
-                    float(np.asarray(plan_yaws)[-1]))  # fmt: skip
+                    float(np.asarray(plan_yaws)[-1]), spacing_m=cfg.path_spacing_m)  # fmt: skip
     step_speed = np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), plan]), axis=0).T) / dt
     top = float(step_speed.max())
     cruise = speed if cruise_speed is None else float(cruise_speed)
@@ -346,7 +359,7 @@ def make_candidates(
     targets = [fr * aim for fr in cfg.speed_fractions]
     # Arc length of each waypoint along the path: the path is the polyline through them.
     s_plan = np.cumsum(np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), plan]), axis=0).T))
-    if path.folded:  # the plan's timing along the forward path: never backwards
+    if path.folded or path.thinned:  # the plan's timing along the forward path: never backwards
         s_plan = np.maximum.accumulate(path.project(plan))
     wps, kinds, offs, spd = [], [], [], []
     leads = leaders(scene, path, cfg.offsets_m, cfg, steps * dt)
@@ -358,7 +371,7 @@ def make_candidates(
         if np.allclose(s_cap, s_plan, rtol=0, atol=1e-9):
             s_cap = s_plan
         # The learned waypoints themselves, exactly, where nothing changed them.
-        as_planned = d == 0 and s_cap is s_plan and not path.folded
+        as_planned = d == 0 and s_cap is s_plan and not (path.folded or path.thinned)
         wps.append(plan[None] if as_planned else path.offset(s_cap, d, cfg.ramp_m)[None])
         kinds.append("plan")
         offs.append(d)

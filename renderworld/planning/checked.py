@@ -33,7 +33,15 @@ from renderworld.planning.scene import (
     forecast_scene,
 )
 
-__all__ = ["CheckedPlan", "blend_with_previous", "check_plan", "current_speed", "past_states"]
+__all__ = [
+    "CheckedPlan",
+    "blend_with_previous",
+    "check_plan",
+    "continue_lateral_accel",
+    "current_speed",
+    "lateral_accel_now",
+    "past_states",
+]
 
 
 @dataclass
@@ -102,6 +110,44 @@ def blend_with_previous(plan: np.ndarray, previous: np.ndarray) -> np.ndarray:
     return np.column_stack([xy, yaw])
 
 
+def lateral_accel_now(history_poses: np.ndarray, speed_before: float, dt: float = KEYFRAME_DT):
+    """The ego's lateral acceleration now (m/s^2, left +), at the end of the cubic Hermite curve
+    from the previous history pose (heading and speed ``speed_before`` there) to the current one.
+
+    That curve is the one the kinematic model tracks between two plans
+    (:func:`renderworld.planning.tracking.reference_batch`); its lateral acceleration at the end
+    does not depend on the end speed.
+
+    Args:
+        history_poses: [H >= 2, 3] (x, y, yaw), the last the current frame (zeros).
+        speed_before: m/s at the previous history pose.
+        dt: seconds between history poses.
+    """
+    x0, y0, yaw0 = np.asarray(history_poses, dtype=np.float64)[-2]
+    return float((6.0 * y0 + 2.0 * dt * speed_before * np.sin(yaw0)) / dt**2)
+
+
+def continue_lateral_accel(waypoints: np.ndarray, accel: float, dt: float = KEYFRAME_DT):
+    """[N, S, 2] the waypoints with each first one moved sideways so that the tracked curve
+    starts with lateral acceleration ``accel`` (m/s^2): the heading rate then goes on smoothly
+    from the last plan's instead of jumping at the change of plan (a jump of ``w`` rad/s reads
+    as about ``4.3 w`` rad/s^2 of yaw acceleration in NAVSIM's 5-state filter).
+
+    The first segment of the tracked curve (:func:`renderworld.planning.tracking.reference_batch`)
+    starts along x with lateral acceleration ``(6 y1 - y2) / dt^2``; ``y1`` is set to give
+    ``accel``. Plans of one waypoint are returned unchanged.
+
+    Args:
+        waypoints: [N, S, 2] metres at +dt ... +S dt, current ego frame.
+        accel: m/s^2, left +.
+        dt: seconds between waypoints.
+    """
+    wp = np.array(waypoints, dtype=np.float64)
+    if wp.shape[1] >= 2:
+        wp[:, 0, 1] = (dt**2 * accel + wp[:, 1, 1]) / 6.0
+    return wp
+
+
 def current_speed(history_poses: np.ndarray, dt: float = KEYFRAME_DT) -> float:
     """The ego's speed now (m/s): :func:`past_states`' last speed."""
     return float(past_states(history_poses, dt, seconds=0.0)[-1, 3])
@@ -159,6 +205,10 @@ def check_plan(
     if cruise_speed is None:
         cruise_speed = float(np.hypot(*np.diff(hist[:, :2], axis=0).T).max() / dt)
     cands = make_candidates(plan[:, :2], plan[:, 2], speed, scene, cfg, dt, cruise_speed)
+    if cfg.continuous_start and speed > cfg.continuous_min_speed:
+        step = int(round(dt / 0.1))
+        accel = lateral_accel_now(hist, float(past[-1 - step, 3]), dt) if len(past) > step else 0.0
+        cands.waypoints = continue_lateral_accel(cands.waypoints, accel, dt)
     t2 = time.perf_counter()
     scores = score_candidates(cands, scene, past, cfg, limits, dt, previous)
     t3 = time.perf_counter()

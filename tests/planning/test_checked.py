@@ -204,3 +204,52 @@ def test_a_change_of_plan_has_to_buy_something():
     kept = check_plan(occ, poses, straight_plan(), GRID, cfg, previous=slower)
     dist = lambda w: np.hypot(*(w - slower).T).mean()  # noqa: E731
     assert dist(kept.trajectory) < dist(free.trajectory) - 0.5
+
+
+def _curve(state, radius, steps=6):
+    """[steps, 2] waypoints 0.5 s apart on a left circle of ``radius`` m from ``state``."""
+    ang = state.speed * DT * np.arange(1, steps + 1) / radius
+    local = np.stack([radius * np.sin(ang), radius * (1 - np.cos(ang))], -1)
+    c, s = np.cos(state.yaw), np.sin(state.yaw)
+    return state.xy + local @ np.array([[c, s], [-s, c]])
+
+
+def test_the_heading_rate_goes_on_where_a_new_plan_takes_over():
+    from renderworld.planning.checked import continue_lateral_accel, lateral_accel_now
+    from renderworld.planning.kinematics import EgoState, KinematicLimits, track_plan
+
+    lim = KinematicLimits()
+    start = EgoState(0.0, 0.0, 0.0, V)
+    driven, _ = track_plan(start, _curve(start, 40.0), lim, 5)  # half a second on a left curve
+    now = driven[-1]
+    rate_before = (driven[-1].yaw - driven[-2].yaw) / 0.1
+    c, s = np.cos(now.yaw), np.sin(now.yaw)
+    to_now = lambda xy: (xy - now.xy) @ np.array([[c, -s], [s, c]])  # noqa: E731
+    hist = np.array([[*to_now(start.xy), -now.yaw], [0.0, 0.0, 0.0]])
+    accel = lateral_accel_now(hist, V, DT)
+    assert accel == pytest.approx(V * rate_before, rel=0.05)  # v x yaw rate of the last step
+    straight = np.stack([V * DT * np.arange(1, 7), np.zeros(6)], -1)  # the new plan: straight
+    rates = {}
+    continued = continue_lateral_accel(straight[None], accel)[0]
+    for name, wp in (("raw", straight), ("continued", continued)):
+        st, _ = track_plan(EgoState(0.0, 0.0, 0.0, now.speed), wp, lim, 5)
+        rates[name] = st[0].yaw / 0.1
+    assert abs(rates["raw"] - rate_before) > 0.1  # straight at once: the heading rate jumps
+    assert abs(rates["continued"] - rate_before) < 0.25 * abs(rates["raw"] - rate_before)
+
+
+def test_a_slow_plan_wiggling_sideways_gives_a_straight_path():
+    wiggle = np.array([[0.0, 0.0], [0.4, 0.05], [0.8, -0.05], [1.2, 0.05], [1.6, -0.05]])
+    assert len(PlanPath(wiggle, 10.0).heading) == len(wiggle)  # every wiggle kept
+    path = PlanPath(wiggle, 10.0, spacing_m=1.0)
+    assert path.thinned and np.abs(np.diff(path.heading)).max() < 0.01
+    occ, poses = history()
+    plan = straight_plan(speed=0.4)  # 0.2 m a step, 5 cm to either side
+    plan[:, 1] = 0.05 * (-1) ** np.arange(len(plan))
+
+    def one_way(cfg):  # the offset-0 candidates move sideways one way only
+        c = check_plan(occ, poses, plan, GRID, cfg).candidates
+        step = np.diff(c.waypoints[c.offset_m == 0, :, 1], axis=1)
+        return bool(((step <= 1e-9).all(1) | (step >= -1e-9).all(1)).all())
+
+    assert one_way(CheckConfig()) and not one_way(CheckConfig(path_spacing_m=0.0))
