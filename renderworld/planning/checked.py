@@ -6,7 +6,8 @@ the world model's own plan:
 1. **Forecast scene** (:func:`renderworld.planning.scene.forecast_scene`): the movers of the
    current frame tracked through the history and moved by the model's mover forecast, the
    static scenery and the drivable cells, in the current ego frame;
-2. **Candidates** (:func:`renderworld.planning.candidates.make_candidates`) around the plan;
+2. **Candidates** (:func:`renderworld.planning.candidates.make_candidates`) around the plan,
+   each starting with the ego's lateral acceleration now (:func:`continue_lateral_accel`);
 3. **Scores** (:func:`renderworld.planning.check.score_candidates`): each candidate tracked by
    the kinematic model and scored against the forecast scene.
 
