@@ -124,7 +124,7 @@ def lateral_accel_now(history_poses: np.ndarray, speed_before: float, dt: float 
         speed_before: m/s at the previous history pose.
         dt: seconds between history poses.
     """
-    x0, y0, yaw0 = np.asarray(history_poses, dtype=np.float64)[-2]
+    _, y0, yaw0 = np.asarray(history_poses, dtype=np.float64)[-2]
     return float((6.0 * y0 + 2.0 * dt * speed_before * np.sin(yaw0)) / dt**2)
 
 
