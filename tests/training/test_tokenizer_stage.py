@@ -70,3 +70,48 @@ def test_prior_init_starts_the_heads_at_the_training_frames_class_frequencies(co
     assert torch.equal(b, plain.air_head.conv.bias)
     with pytest.raises(ValueError, match="stage.prior_init: expected true or false"):
         TokenizerStage(compose_cfg([*over, "stage.prior_init=3"]))
+
+
+def test_class_balance_weights_the_cross_entropy_by_inverse_training_frequency(
+    converted, tmp_path
+):
+    """``stage.class_balance`` p: at the start of training (fresh or resumed) the model's CE
+    weights become (f_c / f_max) ** -p of the training frames' class frequencies, so a rare
+    class's voxel weighs more than a free one and the loss of the same batch changes."""
+    from renderworld.training.stages.tokenizer import TokenizerStage, balanced_class_weights
+
+    over = ["stage=tokenizer", *base._data(converted), f"run_dir={tmp_path}", *base.QUIET,
+            *base.TINY_TOKENIZER]  # fmt: skip
+    stage = TokenizerStage(compose_cfg([*over, "stage.class_balance=0.5"]))
+    train, _ = stage.build_datasets(stage.cfg)
+    model = stage.build_model(stage.cfg)
+    batch = torch.stack([train[i]["occ"] for i in range(2)])
+    torch.manual_seed(0)
+    plain_loss = model(batch).loss.item()
+    assert model.class_weights is None
+    stage.on_train_start(model, str(tmp_path))
+    w = model.class_weights
+    counts = torch.zeros(18, dtype=torch.float64)
+    for i in range(len(train)):
+        counts += torch.bincount(train[i]["occ"].long().reshape(-1), minlength=18).double()
+    seen = counts > 0
+    assert w[counts.argmax()] == pytest.approx(1.0)
+    torch.testing.assert_close(
+        w[seen].double(), (counts[seen] / counts.max()) ** -0.5, rtol=1e-5, atol=0
+    )
+    assert (w[~seen] == w[seen].max()).all()
+    torch.manual_seed(0)
+    assert model(batch).loss.item() != pytest.approx(plain_loss, rel=1e-4)
+    off = TokenizerStage(compose_cfg(over))  # the default leaves the CE unweighted
+    off.build_datasets(off.cfg)
+    plain = off.build_model(off.cfg)
+    off.on_train_start(plain, str(tmp_path))
+    assert plain.class_weights is None
+    assert torch.equal(balanced_class_weights(counts, 0.0), torch.ones(18))
+    with pytest.raises(ValueError, match="stage.class_balance: expected a number >= 0"):
+        TokenizerStage(compose_cfg([*over, "stage.class_balance=-1"]))
+    with pytest.raises(ValueError, match="not both"):
+        TokenizerStage(
+            compose_cfg([*over, "stage.class_balance=0.5",
+                         f"+stage.model.class_weights={[1.0] * 18}"])
+        )  # fmt: skip

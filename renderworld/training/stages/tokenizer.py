@@ -27,7 +27,14 @@ from renderworld.training.stages.common import (
     occupancy_metrics,
 )
 
-__all__ = ["PRIOR_FRAMES", "TokenizerStage", "OccFrames", "tokenizer_config", "load_tokenizer"]
+__all__ = [
+    "PRIOR_FRAMES",
+    "TokenizerStage",
+    "balanced_class_weights",
+    "OccFrames",
+    "tokenizer_config",
+    "load_tokenizer",
+]
 
 #: Training frames whose class frequencies start the output heads (``stage.prior_init``).
 PRIOR_FRAMES = 64
@@ -82,6 +89,29 @@ def load_tokenizer(path, device: str | torch.device = "cpu") -> SceneTokenizer:
     return model
 
 
+def balanced_class_weights(counts: torch.Tensor, power: float) -> torch.Tensor:
+    """Cross-entropy weights from class frequencies: ``(f_c / max_c f_c) ** -power``.
+
+    The most frequent class weighs 1; a class that never occurs gets the largest weight of the
+    classes that do (it has no voxel to weigh, and a rare class is not out-weighed by it).
+
+    Args:
+        counts: [18] voxel counts per Occ3D class.
+        power: p >= 0; 0 gives equal weights, 0.5 the inverse square root of the frequency.
+
+    Returns:
+        [18] float32 weights, each >= 1.
+    """
+    counts = torch.as_tensor(counts, dtype=torch.float64)
+    seen = counts > 0
+    if counts.shape != (18,) or not bool(seen.any()) or power < 0:
+        raise ValueError(f"counts: expected [18] counts with one > 0, got {tuple(counts.shape)}")
+    w = torch.ones(18, dtype=torch.float64)
+    w[seen] = (counts[seen] / counts.max()) ** -power
+    w[~seen] = w[seen].max()
+    return w.float()
+
+
 @register_stage("tokenizer")
 class TokenizerStage(Stage):
     """Scene tokenizer training (variant from ``stage.model.variant``)."""
@@ -92,6 +122,14 @@ class TokenizerStage(Stage):
         if not isinstance(prior, bool):
             raise ValueError(f"stage.prior_init: expected true or false, got {prior!r}")
         self.prior_init = prior
+        balance = cfg.stage.get("class_balance", 0.0)
+        if isinstance(balance, bool) or not isinstance(balance, (int, float)) or balance < 0:
+            raise ValueError(f"stage.class_balance: expected a number >= 0, got {balance!r}")
+        self.class_balance = float(balance)
+        if self.class_balance > 0 and (cfg.stage.get("model") or {}).get("class_weights"):
+            raise ValueError(
+                "stage.class_balance: set either it or stage.model.class_weights, not both"
+            )
         self._train_set: Dataset | None = None
 
     def build_model(self, cfg: Any) -> nn.Module:
@@ -106,24 +144,39 @@ class TokenizerStage(Stage):
         self._train_set = train
         return train, val
 
-    def warm_start(self, model: nn.Module) -> None:
-        """``stage.prior_init``: start the output heads at the class frequencies of up to
-        :data:`PRIOR_FRAMES` evenly spaced training frames
-        (:meth:`~renderworld.tokenizer.SceneTokenizer.init_output_prior`)."""
-        if not self.prior_init:
-            return
+    def _frame_counts(self, z: int) -> torch.Tensor:
+        """[Z, 18] voxel counts per height level and class of up to :data:`PRIOR_FRAMES`
+        evenly spaced training frames."""
         if self._train_set is None:
-            raise RuntimeError("stage.prior_init: no training frames (call build_datasets first)")
-        raw = model.module if hasattr(model, "module") else model
+            raise RuntimeError("tokenizer stage: no training frames (call build_datasets first)")
         n = len(self._train_set)
         pick = sorted({round(i * (n - 1) / max(PRIOR_FRAMES - 1, 1)) for i in range(PRIOR_FRAMES)})
-        z = raw.cfg.grid_shape[2]
         counts = torch.zeros(z, 18, dtype=torch.float64)
         for i in pick[:n]:
             occ = self._train_set[i]["occ"].long()  # [X, Y, Z]
             for level in range(z):
                 counts[level] += torch.bincount(occ[..., level].reshape(-1), minlength=18).double()
-        raw.init_output_prior(counts)
+        return counts
+
+    def warm_start(self, model: nn.Module) -> None:
+        """``stage.prior_init``: start the output heads at the training frames' class
+        frequencies (:meth:`~renderworld.tokenizer.SceneTokenizer.init_output_prior`)."""
+        if not self.prior_init:
+            return
+        raw = model.module if hasattr(model, "module") else model
+        raw.init_output_prior(self._frame_counts(raw.cfg.grid_shape[2]))
+
+    def on_train_start(self, model: nn.Module, run_dir: str) -> None:
+        """``stage.class_balance`` p > 0: weight each voxel's cross-entropy by its true class's
+        training frequency to the power -p (:func:`balanced_class_weights`); set on every start,
+        resumes included (the weights are not part of the checkpoint)."""
+        if self.class_balance == 0.0:
+            return
+        raw = model.module if hasattr(model, "module") else model
+        counts = self._frame_counts(raw.cfg.grid_shape[2]).sum(0)
+        raw.class_weights = balanced_class_weights(counts, self.class_balance).to(
+            next(raw.parameters()).device
+        )
 
     def loss(self, model: nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, Any]]:
         out = model(batch["occ"])
