@@ -72,9 +72,7 @@ def test_prior_init_starts_the_heads_at_the_training_frames_class_frequencies(co
         TokenizerStage(compose_cfg([*over, "stage.prior_init=3"]))
 
 
-def test_class_balance_weights_the_cross_entropy_by_inverse_training_frequency(
-    converted, tmp_path
-):
+def test_class_balance_weights_the_cross_entropy_by_inverse_training_frequency(converted, tmp_path):
     """``stage.class_balance`` p: at the start of training (fresh or resumed) the model's CE
     weights become (f_c / f_max) ** -p of the training frames' class frequencies, so a rare
     class's voxel weighs more than a free one and the loss of the same batch changes."""
