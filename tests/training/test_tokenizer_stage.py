@@ -113,3 +113,24 @@ def test_class_balance_weights_the_cross_entropy_by_inverse_training_frequency(c
             compose_cfg([*over, "stage.class_balance=0.5",
                          f"+stage.model.class_weights={[1.0] * 18}"])
         )  # fmt: skip
+
+
+def test_eval_builds_the_checkpoints_architecture_when_the_config_differs(
+    converted, tokenizer_ckpt, tmp_path
+):
+    """A checkpoint trained with another ``stage.model`` (here 32 codes, the run saying 64)
+    evaluates as itself, with a warning naming what differs; a checkpoint of another grid is a
+    clear error naming ``ckpt``."""
+    over = ["stage=tokenizer", *base._data(converted), f"ckpt={tokenizer_ckpt}", *base.QUIET,
+            *base.TINY_TOKENIZER]  # fmt: skip
+    same = evaluate(compose_cfg([*over, f"run_dir={tmp_path / 'same'}"], "eval"))
+    with pytest.warns(UserWarning, match=r"trained with stage.model codebook_size=32"):
+        other = evaluate(
+            compose_cfg(
+                [*over, "stage.model.codebook_size=64", f"run_dir={tmp_path / 'other'}"], "eval"
+            )
+        )
+    assert other["val/miou"] == same["val/miou"] and other["val/iou"] == same["val/iou"]
+    with pytest.raises(ValueError, match=r"ckpt: .* was trained on a \(50, 50, 4\) grid"):
+        half = ["grid=half" if o == "grid=coarse" else o for o in over]
+        evaluate(compose_cfg([*half, f"run_dir={tmp_path / 'grid'}"], "eval"))

@@ -9,6 +9,9 @@ the split (and over ranks).
 
 from __future__ import annotations
 
+import warnings
+from dataclasses import fields
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -133,7 +136,37 @@ class TokenizerStage(Stage):
         self._train_set: Dataset | None = None
 
     def build_model(self, cfg: Any) -> nn.Module:
-        return build_tokenizer(tokenizer_config(cfg))
+        """The tokenizer; when evaluating (``ckpt`` set) its architecture is the checkpoint's,
+        so a checkpoint trained before a default changed still evaluates (a warning names what
+        differs from the run's ``stage.model``).
+
+        Raises:
+            ValueError: naming ``ckpt`` when the checkpoint's grid is not the run's.
+        """
+        mine = tokenizer_config(cfg)
+        ckpt = cfg.get("ckpt") if cfg.get("task") == "eval" else None
+        if not ckpt or not Path(str(ckpt)).is_file():
+            return build_tokenizer(mine)
+        stored = load_checkpoint(ckpt, expected_stage="tokenizer")["config"]
+        theirs = tokenizer_config(OmegaConf.create(stored))
+        if theirs.grid_shape != mine.grid_shape:
+            raise ValueError(
+                f"ckpt: {str(ckpt)!r} was trained on a {theirs.grid_shape} grid, the run's is "
+                f"{mine.grid_shape} (grid=...)"
+            )
+        diff = {
+            f.name: getattr(theirs, f.name)
+            for f in fields(theirs)
+            if getattr(theirs, f.name) != getattr(mine, f.name)
+        }
+        if diff:
+            warnings.warn(
+                f"ckpt: {str(ckpt)!r} was trained with stage.model "
+                + ", ".join(f"{k}={v!r}" for k, v in diff.items())
+                + "; evaluating that architecture",
+                stacklevel=2,
+            )
+        return build_tokenizer(theirs)
 
     def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
         folder = infos_dir(cfg)
