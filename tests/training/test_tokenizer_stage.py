@@ -106,6 +106,10 @@ def test_class_balance_weights_the_cross_entropy_by_inverse_training_frequency(c
     off.on_train_start(plain, str(tmp_path))
     assert plain.class_weights is None
     assert torch.equal(balanced_class_weights(counts, 0.0), torch.ones(18))
+    with pytest.raises(ValueError, match="power: expected a number >= 0"):
+        balanced_class_weights(counts, -0.5)
+    with pytest.raises(ValueError, match="counts: expected"):
+        balanced_class_weights(torch.zeros(18), 0.5)
     with pytest.raises(ValueError, match="stage.class_balance: expected a number >= 0"):
         TokenizerStage(compose_cfg([*over, "stage.class_balance=-1"]))
     with pytest.raises(ValueError, match="not both"):

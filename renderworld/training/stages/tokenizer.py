@@ -104,11 +104,16 @@ def balanced_class_weights(counts: torch.Tensor, power: float) -> torch.Tensor:
 
     Returns:
         [18] float32 weights, each >= 1.
+
+    Raises:
+        ValueError: naming ``counts`` (not 18, or all zero) or ``power`` (negative).
     """
     counts = torch.as_tensor(counts, dtype=torch.float64)
     seen = counts > 0
-    if counts.shape != (18,) or not bool(seen.any()) or power < 0:
-        raise ValueError(f"counts: expected [18] counts with one > 0, got {tuple(counts.shape)}")
+    if counts.shape != (18,) or not bool(seen.any()):
+        raise ValueError(f"counts: expected [18] counts with one > 0, got {counts.tolist()}")
+    if power < 0:
+        raise ValueError(f"power: expected a number >= 0, got {power}")
     w = torch.ones(18, dtype=torch.float64)
     w[seen] = (counts[seen] / counts.max()) ** -power
     w[~seen] = w[seen].max()
