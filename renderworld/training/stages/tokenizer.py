@@ -139,6 +139,7 @@ class TokenizerStage(Stage):
                 "stage.class_balance: set either it or stage.model.class_weights, not both"
             )
         self._train_set: Dataset | None = None
+        self._counts: torch.Tensor | None = None  # _frame_counts of _train_set, read once
 
     def build_model(self, cfg: Any) -> nn.Module:
         """The tokenizer; when evaluating (``ckpt`` set) its architecture is the checkpoint's,
@@ -179,12 +180,14 @@ class TokenizerStage(Stage):
         root = str(cfg.dataset.data_root)
         train = OccFrames(load_infos(folder, cfg.dataset.train_split), root, grid, occ_root)
         val = OccFrames(load_infos(folder, cfg.dataset.val_split), root, grid, occ_root)
-        self._train_set = train
+        self._train_set, self._counts = train, None
         return train, val
 
     def _frame_counts(self, z: int) -> torch.Tensor:
         """[Z, 18] voxel counts per height level and class of up to :data:`PRIOR_FRAMES`
         evenly spaced training frames."""
+        if self._counts is not None and self._counts.shape[0] == z:
+            return self._counts
         if self._train_set is None:
             raise RuntimeError("tokenizer stage: no training frames (call build_datasets first)")
         n = len(self._train_set)
@@ -194,6 +197,7 @@ class TokenizerStage(Stage):
             occ = self._train_set[i]["occ"].long()  # [X, Y, Z]
             for level in range(z):
                 counts[level] += torch.bincount(occ[..., level].reshape(-1), minlength=18).double()
+        self._counts = counts
         return counts
 
     def warm_start(self, model: nn.Module) -> None:
