@@ -143,6 +143,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         check_state_dict_keys(model, ckpt["model"], source=f"checkpoint {str(ckpt_path)!r}")
         model.load_state_dict(ckpt["model"], strict=True)
         model.to(info.device)
+        stage.on_eval_start(model)
         loader = build_val_loader(stage, val_set, tcfg, info, _seed(cfg))
         precision = effective_precision(tcfg.precision, info.device)
         metrics = run_validation(stage, model, loader, info, precision)

@@ -133,6 +133,10 @@ class Stage(ABC):
     def on_train_end(self, model: nn.Module, run_dir: str) -> None:  # noqa: B027 - optional
         """Called on every rank after the last step and the final checkpoint."""
 
+    def on_eval_start(self, model: nn.Module) -> None:  # noqa: B027 - optional
+        """Called by ``evaluate(cfg)`` on every rank once the checkpoint's weights are loaded,
+        before scoring: e.g. re-fit a calibration of those weights that the config asks for."""
+
     def on_eval_end(  # noqa: B027 - optional
         self, model: nn.Module, metrics: Mapping[str, float], run_dir: str
     ) -> None:

@@ -144,6 +144,10 @@ def test_stage_config_composes_and_validates(converted, tmp_path):
         ("stage.threshold.candidates=[0.5,1.5]", r"stage.threshold.candidates: expected values"),
         ("stage.threshold.max_samples=0", r"stage.threshold.max_samples: expected null or an int"),
         (
+            "stage.threshold.refit_root=/nonexistent/root",
+            r"stage.threshold.refit_root: '/nonexistent/root' is not a folder",
+        ),
+        (
             "stage.threshold.per_class=yes",
             r"stage.threshold.per_class: expected true \(with criterion miou\) or false",
         ),
@@ -371,3 +375,42 @@ def test_per_class_thresholds_are_saved_and_used_by_eval_and_export(trained, tmp
     if any(offsets.values()):
         assert info["class_offsets"] == pytest.approx(offsets)
         assert "plus the stored per-class offsets" in table
+
+
+def test_eval_refit_root_rechooses_the_readout_for_the_evaluated_weights(trained, tmp_path):
+    # The checkpoint holds one global threshold; evaluating with per_class=true and refit_root
+    # re-chooses per-class thresholds for its weights, as the end of training would have, and
+    # scores with them. Oracle: the end-of-training selection with the same options on a copy.
+    import shutil
+
+    from renderworld.training.stages.img2occ import Img2OccStage
+
+    root, infos, run, _ = trained
+    ckpt = run / "checkpoints" / "last.pt"
+    before = ckpt.read_bytes()
+    options = [*stage_overrides(root, infos), "stage.threshold.per_class=true"]
+    out = tmp_path / "eval"
+    proc = subprocess.run(
+        [PYTHON, EVAL, *options, f"stage.threshold.refit_root={root}", f"ckpt={ckpt}",
+         f"run_dir={out}"],
+        cwd=tmp_path, env=subprocess_env(), capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert ckpt.read_bytes() == before  # the checkpoint file is not changed
+    record = json.loads((out / "threshold_refit.json").read_text())
+    assert record["root"] == str(root) and record["split"] == "train" and record["samples"] == 4
+    copy = tmp_path / "run"
+    shutil.copytree(run / "checkpoints", copy / "checkpoints")
+    cfg = compose_cfg([*options, f"run_dir={copy}"])
+    stage = Img2OccStage(cfg)
+    stage.build_datasets(cfg)
+    model, _ = load_img2occ(copy / "checkpoints" / "last.pt")
+    stage.on_train_end(model, str(copy))
+    oracle = load_checkpoint(copy / "checkpoints" / "last.pt", "img2occ")
+    assert record["per_class"] == pytest.approx(oracle["threshold"]["per_class"])
+    assert record["value"] == pytest.approx(oracle["threshold"]["value"])
+    metrics = json.loads((out / "eval_metrics.json").read_text())
+    for key in ("val/cam/miou", "val/cam/iou", "val/full/miou"):
+        assert metrics[key] == pytest.approx(oracle["metrics"][key], rel=1e-9), key
+    table = (out / "occ3d_metrics.md").read_text()
+    assert f"opacity > the re-chosen (on `{root}`) per-class threshold" in table

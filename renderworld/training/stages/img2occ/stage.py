@@ -24,6 +24,7 @@ recomputed with that threshold. Validation during training uses the threshold th
 
 from __future__ import annotations
 
+import json
 import logging
 import warnings
 from pathlib import Path
@@ -50,6 +51,7 @@ from renderworld.training.stages.img2occ.builders import (
 from renderworld.training.stages.img2occ.threshold import (
     ThresholdMixin,
     _offset_options,
+    _refit_root,
     _threshold_options,
 )
 
@@ -111,6 +113,7 @@ class Img2OccStage(ThresholdMixin, Stage):
         img2occ_config(cfg)  # fail on a bad model or threshold config before any data is read
         _threshold_options(cfg)
         _offset_options(cfg)
+        _refit_root(cfg)
         train = img2occ_datasets(cfg, cfg.dataset.train_split, _adjacent(cfg))
         # Evaluation reads the readout only: no adjacent views to load.
         self._val = img2occ_datasets(cfg, cfg.dataset.val_split)
@@ -200,10 +203,16 @@ class Img2OccStage(ThresholdMixin, Stage):
         raw = model.module if hasattr(model, "module") else model
         threshold = float(raw.occupancy_threshold)
         per_class = raw.class_thresholds.tolist()
+        refit = getattr(self, "refit_record", None)
+        stored = "stored"
         rule = f"opacity > {threshold:g} (the checkpoint's stored threshold)"
+        if refit:  # stage.threshold.refit_root: re-chosen for these weights before scoring
+            stored = f"re-chosen (on `{refit['root']}`)"
+            rule = f"opacity > {threshold:g} (re-chosen on `{refit['root']}`)"
+            (out / "threshold_refit.json").write_text(json.dumps(refit, indent=2) + "\n")
         if min(per_class) >= 0:
             rule = (
-                "opacity > the stored per-class threshold of the argmax class ("
+                f"opacity > the {stored} per-class threshold of the argmax class ("
                 + ", ".join(f"{c} {t:g}" for c, t in zip(OCC3D_CLASSES, per_class))
                 + ")"
             )
@@ -211,7 +220,7 @@ class Img2OccStage(ThresholdMixin, Stage):
         argmax = "argmax of the Gaussian's logits"
         if any(offsets):
             argmax = (
-                "argmax of the Gaussian's logits plus the stored per-class offsets ("
+                f"argmax of the Gaussian's logits plus the {stored} per-class offsets ("
                 + ", ".join(f"{c} {o:+g}" for c, o in zip(OCC3D_CLASSES, offsets) if o)
                 + ")"
             )

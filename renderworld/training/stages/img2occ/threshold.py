@@ -6,6 +6,10 @@ TRAINING split (criterion ``stage.threshold.criterion``, camera mask; with
 offsets of the argmax) for the weights of ``last.pt`` and,
 separately, of ``best.pt``; each checkpoint is re-written atomically with its thresholds in the
 model state, a ``threshold`` record and its validation metrics recomputed with them.
+
+When evaluating, ``stage.threshold.refit_root`` re-chooses it the same way for the evaluated
+weights on another data root's training split (e.g. to compare readout options on a
+development split without retraining); the checkpoint file is left as it is.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from omegaconf import open_dict
 from torch import nn
 from torch.utils.data import Dataset, Subset
 
@@ -78,6 +83,21 @@ def _offset_options(cfg: Any) -> tuple[bool, list[float], int]:
     return on, cands, rounds
 
 
+def _refit_root(cfg: Any) -> Path | None:
+    """``stage.threshold.refit_root``: None, or the existing data root whose training split
+    re-chooses the readout when evaluating."""
+    raw = (cfg.stage.get("threshold") or {}).get("refit_root")
+    if raw is None:
+        return None
+    path = Path(str(raw))
+    if not path.is_dir():
+        raise ValueError(
+            f"stage.threshold.refit_root: {str(raw)!r} is not a folder (expected a data root "
+            f"converted by tools/create_data.py, or null for the checkpoint's stored readout)"
+        )
+    return path
+
+
 def _is_main() -> bool:
     dist = torch.distributed
     return not (dist.is_available() and dist.is_initialized()) or dist.get_rank() == 0
@@ -87,9 +107,10 @@ class ThresholdMixin:
     """``on_train_end`` threshold selection; needs the Stage's ``cfg``, ``name``, ``_loader``,
     ``transfer_batch`` and ``_val_metrics``."""
 
-    def _threshold_set(self) -> Dataset:
-        data = img2occ_datasets(self.cfg, self.cfg.dataset.train_split)
-        cap = _threshold_options(self.cfg)[2]
+    def _threshold_set(self, cfg: Any = None) -> Dataset:
+        cfg = self.cfg if cfg is None else cfg
+        data = img2occ_datasets(cfg, cfg.dataset.train_split)
+        cap = _threshold_options(cfg)[2]
         if cap is not None and cap < len(data):
             # Evenly spaced over the split (every scene contributes), deterministic.
             idx = np.unique(np.linspace(0, len(data) - 1, cap).round().astype(int))
@@ -127,6 +148,38 @@ class ThresholdMixin:
             "samples": len(data),
             "scores": {f"{t:g}": s for t, s in scores.items()},
         }
+
+    def on_eval_start(self, model: nn.Module) -> None:
+        """``stage.threshold.refit_root`` set: re-choose the readout of the evaluated weights
+        under the run's ``stage.threshold`` options, on that root's training split (its
+        converter infos; ``stage.infos_dir`` only when it is the evaluated root), exactly as at
+        the end of training, before scoring. The checkpoint file is not changed; the record is
+        kept for ``threshold_refit.json`` in the eval run dir."""
+        self.refit_record: dict[str, Any] | None = None
+        root = _refit_root(self.cfg)
+        if root is None:
+            return
+        cfg = copy.deepcopy(self.cfg)
+        with open_dict(cfg):
+            if root.resolve() != Path(str(cfg.dataset.data_root)).resolve():
+                cfg.stage.infos_dir = None
+            cfg.dataset.data_root = str(root)
+        raw = model.module if hasattr(model, "module") else model
+        was_training = raw.training
+        try:
+            record = self._choose(raw, self._threshold_set(cfg))
+        finally:
+            raw.train(was_training)
+        self.refit_record = {"root": str(root), **record}
+        log.info(
+            "readout re-chosen on %s (%s split, %d samples): threshold %g%s%s",
+            root,
+            record["split"],
+            record["samples"],
+            record["value"],
+            ", per class" if record["per_class"] else "",
+            ", with class offsets" if record["class_offsets"] else "",
+        )
 
     def on_train_end(self, model: nn.Module, run_dir: str) -> None:
         """Rank 0: choose the readout threshold for ``last.pt`` and ``best.pt`` and re-save them.
