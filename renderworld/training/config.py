@@ -133,6 +133,9 @@ class TrainerConfig:
         num_threads: torch intra-op threads per process (None: torch's default).
         pin_memory: Pin host memory in the DataLoader (CUDA only).
         find_unused_parameters: Passed to DistributedDataParallel.
+        data_seed: Seed of the training samples' order alone (None: the run's ``seed``), so
+            the variance of a recipe can be split into its initialisation's and its data
+            order's; everything else still follows ``seed``.
     """
 
     max_steps: int | None = 1000
@@ -158,6 +161,7 @@ class TrainerConfig:
     num_threads: int | None = None
     pin_memory: bool = False
     find_unused_parameters: bool = False
+    data_seed: int | None = None
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
@@ -177,6 +181,14 @@ class TrainerConfig:
                 _non_negative(f"trainer.{key}", value)
         if self.max_minutes is not None:
             _positive("trainer.max_minutes", self.max_minutes)
+        if self.data_seed is not None and (
+            isinstance(self.data_seed, bool)
+            or not isinstance(self.data_seed, int)
+            or not 0 <= self.data_seed < 2**31
+        ):
+            raise ValueError(
+                f"trainer.data_seed: expected null or an int in [0, 2**31), got {self.data_seed!r}"
+            )
         if self.grad_clip is not None:
             _non_negative("trainer.grad_clip", self.grad_clip)
         if self.ema_decay and not 0.0 < self.ema_decay < 1.0:

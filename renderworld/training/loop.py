@@ -113,7 +113,7 @@ class Trainer:
             num_replicas=info.world_size,
             rank=info.rank,
             shuffle=True,
-            seed=seed,
+            seed=seed if tcfg.data_seed is None else tcfg.data_seed,
             drop_last=True,
         )
         per_rank = len(self.sampler.shard())

@@ -257,6 +257,35 @@ def test_bad_seed_fails_clearly(tmp_path):
         train(fit_cfg(tmp_path, "seed=-1"))
 
 
+def test_data_seed_sets_the_sample_order_alone(tmp_path, monkeypatch):
+    # seed=1 with trainer.data_seed=0: seed 0's batches, seed 1's initial weights.
+    from tests.training.regression_stage import RegressionStage
+
+    seen: list[tuple[torch.Tensor, dict[str, torch.Tensor] | None]] = []
+    loss = RegressionStage.loss
+
+    def recording(self, model, batch):
+        first = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        seen.append((batch["x"].clone(), first if not seen else None))
+        return loss(self, model, batch)
+
+    monkeypatch.setattr(RegressionStage, "loss", recording)
+
+    def run(name: str, *over: str):
+        seen.clear()
+        train(fit_cfg(tmp_path / name, "trainer.max_steps=6", "trainer.val_every=0", *over))
+        return torch.stack([x for x, _ in seen]), seen[0][1]
+
+    x1, init1 = run("s1", "seed=1")
+    x0, init0 = run("s0", "seed=0")
+    xd, initd = run("s1d0", "seed=1", "trainer.data_seed=0")
+    assert torch.equal(xd, x0) and not torch.equal(xd, x1)
+    assert all(torch.equal(initd[k], init1[k]) for k in init1)
+    assert any(not torch.equal(init0[k], init1[k]) for k in init1)
+    with pytest.raises(ValueError, match=r"trainer.data_seed: expected null or an int"):
+        train(fit_cfg(tmp_path / "bad", "trainer.data_seed=-1"))
+
+
 def test_unknown_stage_module_fails_clearly(tmp_path):
     cfg = fit_cfg(tmp_path, "stage.name=nope", "stage._target_module_=tests.training.no_such")
     with pytest.raises(ValueError, match="stage 'nope': cannot import its module"):
