@@ -414,3 +414,44 @@ def test_eval_refit_root_rechooses_the_readout_for_the_evaluated_weights(trained
         assert metrics[key] == pytest.approx(oracle["metrics"][key], rel=1e-9), key
     table = (out / "occ3d_metrics.md").read_text()
     assert f"opacity > the re-chosen (on `{root}`) per-class threshold" in table
+
+
+def test_eval_refit_root_without_per_class_drops_the_checkpoints_per_class_readout(
+    trained, tmp_path
+):
+    # A copy of the trained run re-chosen with per-class thresholds and offsets, evaluated with
+    # refit_root and the default options (one threshold, no offsets): its readout is the one
+    # the end of training chose for the same weights with those options, the trained run's.
+    import shutil
+
+    from renderworld.training.stages.img2occ import Img2OccStage
+
+    root, infos, run, _ = trained
+    copy = tmp_path / "run"
+    shutil.copytree(run / "checkpoints", copy / "checkpoints")
+    per_class = [*stage_overrides(root, infos), "stage.threshold.per_class=true"]
+    cfg = compose_cfg([*per_class, "stage.threshold.class_offsets=true", f"run_dir={copy}"])
+    stage = Img2OccStage(cfg)
+    stage.build_datasets(cfg)
+    model, _ = load_img2occ(copy / "checkpoints" / "last.pt")
+    stage.on_train_end(model, str(copy))
+    assert (
+        min(load_checkpoint(copy / "checkpoints" / "last.pt")["threshold"]["per_class"].values())
+        >= 0
+    )
+    out = tmp_path / "eval"
+    proc = subprocess.run(
+        [PYTHON, EVAL, *stage_overrides(root, infos), f"stage.threshold.refit_root={root}",
+         f"ckpt={copy / 'checkpoints' / 'last.pt'}", f"run_dir={out}"],
+        cwd=tmp_path, env=subprocess_env(), capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    original = load_checkpoint(run / "checkpoints" / "last.pt")
+    record = json.loads((out / "threshold_refit.json").read_text())
+    assert record["per_class"] is None and record["class_offsets"] is None
+    assert record["value"] == pytest.approx(original["threshold"]["value"])
+    metrics = json.loads((out / "eval_metrics.json").read_text())
+    for key in ("val/cam/miou", "val/cam/iou", "val/full/miou"):
+        assert metrics[key] == pytest.approx(original["metrics"][key], rel=1e-9), key
+    table = (out / "occ3d_metrics.md").read_text()
+    assert f"opacity > {record['value']:g} (re-chosen on `{root}`)" in table

@@ -165,6 +165,10 @@ class ThresholdMixin:
                 cfg.stage.infos_dir = None
             cfg.dataset.data_root = str(root)
         raw = model.module if hasattr(model, "module") else model
+        # From a fresh model's readout, as at the end of training: the checkpoint's per-class
+        # thresholds and offsets would otherwise still apply where the options turn them off.
+        raw.class_thresholds.fill_(-1.0)
+        raw.class_offsets.zero_()
         was_training = raw.training
         try:
             record = self._choose(raw, self._threshold_set(cfg))
