@@ -91,7 +91,7 @@ def mini_models(tokenizer_ckpt: Path, world_model_ckpt: Path) -> tuple[tuple, st
         p = bundle_planner(world_model_ckpt, tokenizer_ckpt)
         return (p.tokenizer, p.world_model), "demo checkpoints"
     tok = TokenizerConfig(
-        grid_shape=(50, 50, 4), latent_shape=(25, 25), latent_channels=64, codebook_size=512,
+        grid_shape=(50, 50, 4), latent_shape=(25, 25), latent_channels=64, codebook_size=1024,
         base_channels=32, num_res_blocks=1, attention=False,
     )  # fmt: skip
     models = _models(tok, embed_dim=64, num_heads=4, num_scales=2, layers_per_scale=(1, 1))
