@@ -377,14 +377,27 @@ def test_per_class_thresholds_are_saved_and_used_by_eval_and_export(trained, tmp
         assert "plus the stored per-class offsets" in table
 
 
-def test_eval_refit_root_rechooses_the_readout_for_the_evaluated_weights(trained, tmp_path):
-    # The checkpoint holds one global threshold; evaluating with per_class=true and refit_root
-    # re-chooses per-class thresholds for its weights, as the end of training would have, and
-    # scores with them. Oracle: the end-of-training selection with the same options on a copy.
+def _rechosen_copy(run, tmp_path, overrides: list[str]):
+    """A copy of ``run``'s checkpoints whose readout the end-of-training selection re-chose
+    under ``overrides``; returns the copy's ``last.pt`` path."""
     import shutil
 
     from renderworld.training.stages.img2occ import Img2OccStage
 
+    copy = tmp_path / "run"
+    shutil.copytree(run / "checkpoints", copy / "checkpoints")
+    cfg = compose_cfg([*overrides, f"run_dir={copy}"])
+    stage = Img2OccStage(cfg)
+    stage.build_datasets(cfg)
+    model, _ = load_img2occ(copy / "checkpoints" / "last.pt")
+    stage.on_train_end(model, str(copy))
+    return copy / "checkpoints" / "last.pt"
+
+
+def test_eval_refit_root_rechooses_the_readout_for_the_evaluated_weights(trained, tmp_path):
+    # The checkpoint holds one global threshold; evaluating with per_class=true and refit_root
+    # re-chooses per-class thresholds for its weights, as the end of training would have, and
+    # scores with them. Oracle: the end-of-training selection with the same options on a copy.
     root, infos, run, _ = trained
     ckpt = run / "checkpoints" / "last.pt"
     before = ckpt.read_bytes()
@@ -399,14 +412,7 @@ def test_eval_refit_root_rechooses_the_readout_for_the_evaluated_weights(trained
     assert ckpt.read_bytes() == before  # the checkpoint file is not changed
     record = json.loads((out / "threshold_refit.json").read_text())
     assert record["root"] == str(root) and record["split"] == "train" and record["samples"] == 4
-    copy = tmp_path / "run"
-    shutil.copytree(run / "checkpoints", copy / "checkpoints")
-    cfg = compose_cfg([*options, f"run_dir={copy}"])
-    stage = Img2OccStage(cfg)
-    stage.build_datasets(cfg)
-    model, _ = load_img2occ(copy / "checkpoints" / "last.pt")
-    stage.on_train_end(model, str(copy))
-    oracle = load_checkpoint(copy / "checkpoints" / "last.pt", "img2occ")
+    oracle = load_checkpoint(_rechosen_copy(run, tmp_path, options), "img2occ")
     assert record["per_class"] == pytest.approx(oracle["threshold"]["per_class"])
     assert record["value"] == pytest.approx(oracle["threshold"]["value"])
     metrics = json.loads((out / "eval_metrics.json").read_text())
@@ -422,27 +428,14 @@ def test_eval_refit_root_without_per_class_drops_the_checkpoints_per_class_reado
     # A copy of the trained run re-chosen with per-class thresholds and offsets, evaluated with
     # refit_root and the default options (one threshold, no offsets): its readout is the one
     # the end of training chose for the same weights with those options, the trained run's.
-    import shutil
-
-    from renderworld.training.stages.img2occ import Img2OccStage
-
     root, infos, run, _ = trained
-    copy = tmp_path / "run"
-    shutil.copytree(run / "checkpoints", copy / "checkpoints")
     per_class = [*stage_overrides(root, infos), "stage.threshold.per_class=true"]
-    cfg = compose_cfg([*per_class, "stage.threshold.class_offsets=true", f"run_dir={copy}"])
-    stage = Img2OccStage(cfg)
-    stage.build_datasets(cfg)
-    model, _ = load_img2occ(copy / "checkpoints" / "last.pt")
-    stage.on_train_end(model, str(copy))
-    assert (
-        min(load_checkpoint(copy / "checkpoints" / "last.pt")["threshold"]["per_class"].values())
-        >= 0
-    )
+    rechosen = _rechosen_copy(run, tmp_path, [*per_class, "stage.threshold.class_offsets=true"])
+    assert min(load_checkpoint(rechosen)["threshold"]["per_class"].values()) >= 0
     out = tmp_path / "eval"
     proc = subprocess.run(
         [PYTHON, EVAL, *stage_overrides(root, infos), f"stage.threshold.refit_root={root}",
-         f"ckpt={copy / 'checkpoints' / 'last.pt'}", f"run_dir={out}"],
+         f"ckpt={rechosen}", f"run_dir={out}"],
         cwd=tmp_path, env=subprocess_env(), capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
