@@ -261,7 +261,7 @@ class Planner:
             t0 = self._sync()
             hist = history_poses(displacements, yaws).to(self.device)
             with self._world_model_threads():
-                poses, _ = self.world_model.predict_poses(hist, cmd, occ[:, -1])
+                poses, _ = self.world_model.predict_poses(hist, cmd, occ[:, -1], occ, self.grid)
             traj = poses[..., :2].float().cpu().numpy()
             yaw = poses[..., 2].float().cpu().numpy()
             ms["world_model"] = 1e3 * (self._sync() - t0)

@@ -18,12 +18,20 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from renderworld.constants import COMMANDS, FREE_ID, GridSpec
-from renderworld.world.baselines import constant_turn_rate_poses, warp_along_poses
+from renderworld.constants import COMMANDS, GridSpec
+from renderworld.world.baselines import constant_turn_rate_poses
 from renderworld.world.config import WorldModelConfig
 from renderworld.world.model import WorldModel
 from renderworld.world.mover_head import MoverHead
 from renderworld.world.movers import MOVERS
+from renderworld.world.pose_inputs import (
+    BEV_GROUPS,
+    align_history,
+    bev_channels,
+    invert_poses,
+    kinematic_features,
+    motion_channels,
+)
 
 __all__ = [
     "ANCHORS",
@@ -34,107 +42,9 @@ __all__ = [
     "bev_channels",
     "invert_poses",
     "kinematic_features",
+    "motion_channels",
     "pose_loss",
 ]
-
-#: Occ3D class ids of each bird's-eye-view channel: driveable surface, other flat, sidewalk,
-#: terrain, manmade, vegetation, objects (others + the ten object classes).
-BEV_GROUPS: tuple[tuple[int, ...], ...] = (
-    (11,),
-    (12,),
-    (13,),
-    (14,),
-    (15,),
-    (16,),
-    tuple(range(11)),
-)
-
-
-def bev_channels(occupancy: torch.Tensor) -> torch.Tensor:
-    """Bird's-eye view of class groups: a channel is 1 where any z level holds its classes.
-
-    Args:
-        occupancy: [B, X, Y, Z] integer Occ3D labels.
-
-    Returns:
-        [B, len(BEV_GROUPS), X, Y] float32.
-    """
-    if not isinstance(occupancy, torch.Tensor) or occupancy.dim() != 4:
-        raise ValueError(
-            f"occupancy: expected a [B, X, Y, Z] tensor, got {getattr(occupancy, 'shape', None)}"
-        )
-    occ = occupancy.long()
-    chans = [torch.zeros(occ.shape[:3], dtype=torch.bool, device=occ.device) for _ in BEV_GROUPS]
-    for c, ids in enumerate(BEV_GROUPS):
-        for i in ids:
-            chans[c] |= (occ == i).any(dim=-1)
-    return torch.stack(chans, dim=1).float()
-
-
-def invert_poses(poses: torch.Tensor) -> torch.Tensor:
-    """Pose of frame A in frame B from the pose of B in A.
-
-    Args:
-        poses: [..., 3] (x, y, yaw).
-
-    Returns:
-        [..., 3]: ``(-R(-yaw) (x, y), -yaw)``.
-    """
-    if poses.shape[-1] != 3:
-        raise ValueError(f"poses: expected [..., 3] (x, y, yaw), got {tuple(poses.shape)}")
-    x, y, yaw = poses.unbind(-1)
-    c, s = torch.cos(yaw), torch.sin(yaw)
-    return torch.stack([-(c * x + s * y), -(-s * x + c * y), -yaw], dim=-1)
-
-
-def align_history(
-    occupancy: torch.Tensor, history_poses: torch.Tensor, grid: GridSpec, fill: int = FREE_ID
-) -> torch.Tensor:
-    """Bring history frames into the current ego frame with their known poses.
-
-    Args:
-        occupancy: [B, H, X, Y, Z] labels, frame j in its own ego frame.
-        history_poses: [B, H, 3] (x, y, yaw) of frame j in the current ego frame.
-        grid: the occupancy grid.
-        fill: label where frame j saw nothing (outside its grid).
-
-    Returns:
-        [B, H, X, Y, Z]: frame j resampled on the current frame's grid (the current frame,
-        pose zero, comes back unchanged).
-    """
-    if occupancy.dim() != 5 or tuple(history_poses.shape) != (*occupancy.shape[:2], 3):
-        raise ValueError(
-            f"occupancy/history_poses: expected [B, H, X, Y, Z] and [B, H, 3], got "
-            f"{tuple(occupancy.shape)} and {tuple(history_poses.shape)}"
-        )
-    b, h = occupancy.shape[:2]
-    current_in_j = invert_poses(history_poses.double()).reshape(b * h, 1, 3)
-    out = warp_along_poses(occupancy.reshape(b * h, *occupancy.shape[2:]), current_in_j, grid, fill)
-    return out.reshape(occupancy.shape)
-
-
-def kinematic_features(history_poses: torch.Tensor) -> torch.Tensor:
-    """Per-step motion of the history on a log-like scale, for :class:`PoseHead`.
-
-    ``asinh(v / s) / 3`` keeps the sign, is linear near zero and logarithmic far from it, so a
-    0.3-degree heading change (a turn starting) and a 14-degree one (a turn going on) are both
-    clearly apart from zero and from each other.
-
-    Args:
-        history_poses: [B, H, 3] (x, y, yaw) of frames t-H+1..t in the current ego frame.
-
-    Returns:
-        [B, 4 H - 6] float32: the H-1 step lengths (scale 1 m), their H-2 changes (scale
-        1 cm), the H-1 heading changes (scale 0.1 degree) and their H-2 changes (scale 0.1
-        degree).
-    """
-    hp = history_poses.float()
-    step = torch.diff(hp[..., :2], dim=1).norm(dim=-1)  # metres per history step
-    dyaw = torch.rad2deg(torch.diff(hp[..., 2], dim=1))
-    dyaw = torch.remainder(dyaw + 180.0, 360.0) - 180.0
-    parts = [step / 1.0, torch.diff(step, dim=1) / 0.01, dyaw / 0.1, torch.diff(dyaw, dim=1) / 0.1]
-    return torch.asinh(torch.cat(parts, dim=1)) / 3.0
-
 
 #: Extrapolations a :class:`PoseHead` predicts residuals on.
 ANCHORS = ("ctr", "ctr_cv")
@@ -160,6 +70,9 @@ class PoseHead(nn.Module):
             changes and the heading changes on a log-like scale), so that the small differences
             that say when a turn starts or ends (a 0.3-degree heading change, a 0.5 m/s speed
             drop) are not lost among inputs of order one.
+        motion_frames: the bird's-eye view also holds :func:`motion_channels` of this many
+            frames before the current one (0: the current frame only), so that the head sees
+            how the others move (a lead car braking, a car cutting in).
     """
 
     #: Scale of the raw outputs: metres for x / y, radians for yaw.
@@ -173,6 +86,7 @@ class PoseHead(nn.Module):
         hidden: int = 128,
         anchors: str = "ctr",
         kinematics: bool = False,
+        motion_frames: int = 0,
     ):
         super().__init__()
         if history < 2 or steps < 1:
@@ -181,6 +95,10 @@ class PoseHead(nn.Module):
             raise ValueError(f"anchors: expected one of {ANCHORS}, got {anchors!r}")
         self.history, self.steps, self.anchors = history, steps, anchors
         self.kinematics = bool(kinematics)
+        if not 0 <= motion_frames < history:
+            raise ValueError(f"motion_frames: expected 0..{history - 1}, got {motion_frames}")
+        self.motion_frames = int(motion_frames)
+        bev_in += self.motion_frames
         n_out = 3 + (1 if anchors == "ctr_cv" else 0)  # (dx, dy, dyaw) [+ CTR-vs-CV logit]
         self.bev = nn.Sequential(
             nn.Conv2d(bev_in, 16, 3, stride=2, padding=1), nn.GELU(),
@@ -206,7 +124,8 @@ class PoseHead(nn.Module):
         Args:
             history_poses: [B, H, 3] (x, y, yaw) of frames t-H+1..t in the current ego frame.
             command: [B] int64 index into ``COMMANDS`` (the current command).
-            bev: [B, C, X, Y] :func:`bev_channels` of the current frame.
+            bev: [B, C, X, Y] :func:`bev_channels` of the current frame (then, with
+                ``motion_frames``, :func:`motion_channels`).
 
         Returns:
             (poses [B, S, 3] of the command's mode, modes [B, len(COMMANDS), S, 3]).
@@ -300,6 +219,7 @@ class PoseWarpWorldModel(nn.Module):
             ``"learned"``, :mod:`renderworld.world.forecast`); only ``"learned"`` has weights,
             its :attr:`mover_head` (:class:`~renderworld.world.mover_head.MoverHead`).
         kinematics: the pose head also reads :func:`kinematic_features` of the history.
+        motion_frames: the pose head also reads :func:`motion_channels` of this many frames.
     """
 
     def __init__(
@@ -309,6 +229,7 @@ class PoseWarpWorldModel(nn.Module):
         anchors: str = "ctr",
         movers: str = "static",
         kinematics: bool = False,
+        motion_frames: int = 0,
     ):
         super().__init__()
         if not isinstance(config, WorldModelConfig):
@@ -320,7 +241,11 @@ class PoseWarpWorldModel(nn.Module):
         self.movers = movers
         self.net = WorldModel(config)
         self.pose = PoseHead(
-            config.history_frames, config.future_frames, anchors=anchors, kinematics=kinematics
+            config.history_frames,
+            config.future_frames,
+            anchors=anchors,
+            kinematics=kinematics,
+            motion_frames=motion_frames,
         )
         self.copy_bonus = nn.Parameter(torch.full((config.num_codebooks,), float(copy_bonus)))
         #: The learned mover motion (``movers="learned"``), else None.
@@ -329,7 +254,12 @@ class PoseWarpWorldModel(nn.Module):
         )
 
     def predict_poses(
-        self, history_poses: torch.Tensor, command: torch.Tensor, current: torch.Tensor
+        self,
+        history_poses: torch.Tensor,
+        command: torch.Tensor,
+        current: torch.Tensor,
+        history: torch.Tensor | None = None,
+        grid: GridSpec | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Future poses [B, S, 3] (and every command's [B, C, S, 3]) from the history poses, the
         current frame and the command.
@@ -337,8 +267,24 @@ class PoseWarpWorldModel(nn.Module):
         Args:
             history_poses: [B, H, 3]; command: [B] int64; current: [B, X, Y, Z] labels of the
                 current frame.
+            history: [B, H, X, Y, Z] labels of the history frames (the last is ``current``) and
+                grid: their grid; needed when the pose head reads ``motion_frames``.
+
+        Raises:
+            ValueError: naming ``history`` when the head reads motion and it or ``grid`` is
+                missing.
         """
-        return self.pose(history_poses, command, bev_channels(current))
+        bev = bev_channels(current)
+        frames = self.pose.motion_frames
+        if frames:
+            if history is None or grid is None:
+                raise ValueError(
+                    f"history: the pose head reads motion_frames={frames}; pass the history "
+                    "frames and their grid"
+                )
+            motion = motion_channels(history, history_poses, grid, frames)
+            bev = torch.cat([bev, motion.to(bev.device)], dim=1)
+        return self.pose(history_poses, command, bev)
 
     def forward(
         self, tokens: torch.Tensor, sequence_poses: torch.Tensor, command: torch.Tensor

@@ -352,6 +352,32 @@ def test_bundles_keep_a_pose_head_that_reads_kinematics(tmp_path):
         load_planner(bad)
 
 
+def test_bundles_keep_a_pose_head_that_reads_motion(tmp_path):
+    tok, base = make_model(seed=4)
+    wm = PoseWarpWorldModel(base.config, anchors="ctr_cv", motion_frames=2)
+    with torch.no_grad():
+        for p in wm.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    path = save_planner_bundle(tmp_path / "m.pt", tok, wm)
+    assert torch.load(path, weights_only=True)["world_model"]["options"]["motion_frames"] == 2
+    loaded = load_planner(path)
+    assert loaded.world_model.pose.motion_frames == 2
+    req = request()
+    np.testing.assert_array_equal(
+        Planner(tok, wm).plan(req).trajectory, loaded.plan(req).trajectory
+    )
+    # The plan reads the past frames: moving the past objects changes it.
+    other = PlanRequest(req.occupancy.copy(), req.ego_displacements, req.command, req.ego_yaws)
+    other.occupancy[:-1, :, :, 1] = FREE_ID
+    assert not np.array_equal(loaded.plan(other).trajectory, loaded.plan(req).trajectory)
+    # Written before the option existed (no "motion_frames"): a head without it.
+    old = _tampered(tmp_path, lambda d: d["world_model"]["options"].pop("motion_frames"))
+    assert load_planner(old).world_model.pose.motion_frames == 0
+    bad = _tampered(tmp_path, lambda d: d["world_model"]["options"].update(motion_frames=-1))
+    with pytest.raises(ValueError, match="motion_frames: expected an int >= 0"):
+        load_planner(bad)
+
+
 def test_schema_1_token_bundles_still_load(tmp_path):
     from tests.planning.test_api import make_planner as token_planner
     from tests.planning.test_api import make_request

@@ -17,6 +17,7 @@ from renderworld.world.pose import (
     bev_channels,
     invert_poses,
     kinematic_features,
+    motion_channels,
     pose_loss,
 )
 
@@ -192,3 +193,47 @@ def test_pose_head_with_kinematics_starts_at_its_anchor_and_reads_them():
     braking[:, 0, 0] = -8.5  # the same current frame, the first step 0.5 m longer
     changed = head(braking, cmd, bev)[0] - head(hist, cmd, bev)[0]
     assert changed.abs().max() > 0
+
+
+def test_motion_channels_put_past_objects_where_they_were_in_the_current_frame():
+    occ = torch.full((1, 3, *GRID.shape), FREE_ID, dtype=torch.uint8)
+    occ[0, 0, 4, 4, 0] = 4  # t-2: a car at (0.5, 0.5) of its frame
+    occ[0, 1, 4, 4, 1] = 9  # t-1: a pedestrian at (0.5, 0.5) of its frame
+    occ[0, 1, 5, 5, 0] = 11  # and road: not an object
+    occ[0, 2, 7, 7, 0] = 4  # the current frame's objects are not in the motion channels
+    poses = torch.zeros(1, 3, 3)
+    poses[0, 0, 0], poses[0, 1, 0] = -2.0, -1.0  # the ego drove 1 m per step along x
+    m = motion_channels(occ, poses, GRID, frames=2)
+    assert m.shape == (1, 2, 8, 8) and m.dtype == torch.float32
+    # t-1 first: the pedestrian 1 m behind where it is in its own frame, the car 2 m behind.
+    assert m[0, 0, 3, 4] == 1 and m[0, 0].sum() == 1
+    assert m[0, 1, 2, 4] == 1 and m[0, 1].sum() == 1
+    torch.testing.assert_close(motion_channels(occ, poses, GRID, frames=1), m[:, :1])
+    with pytest.raises(ValueError, match=r"frames: expected 1\.\.2"):
+        motion_channels(occ, poses, GRID, frames=3)
+    with pytest.raises(ValueError, match="history/history_poses: expected"):
+        motion_channels(occ, poses[:, :2], GRID, frames=1)
+
+
+def test_pose_head_with_motion_reads_where_the_others_were():
+    cfg = WorldModelConfig(
+        codebook_sizes=(8,), token_grid=(4, 4), embed_dim=16, num_heads=2, num_scales=1,
+        layers_per_scale=(1,), history_frames=3, future_frames=2,
+    )  # fmt: skip
+    torch.manual_seed(0)
+    model = PoseWarpWorldModel(cfg, motion_frames=2)
+    assert model.pose.bev[0].in_channels == len(BEV_GROUPS) + 2
+    with torch.no_grad():
+        model.pose.mlp[-1].weight.normal_()
+    hist, cmd = torch.zeros(1, 3, 3), torch.tensor([0])  # the ego stands: nothing leaves the grid
+    occ = torch.full((1, 3, *GRID.shape), FREE_ID, dtype=torch.uint8)
+    occ[0, :, 6, 4, 0] = 4  # a car that stood still
+    still, _ = model.predict_poses(hist, cmd, occ[:, -1], occ, GRID)
+    moved = occ.clone()
+    moved[0, 0, 6, 4, 0], moved[0, 0, 2, 4, 0] = FREE_ID, 4  # it was further back at t-2
+    # The same current frame, another past: another plan.
+    assert not torch.equal(model.predict_poses(hist, cmd, moved[:, -1], moved, GRID)[0], still)
+    with pytest.raises(ValueError, match="history: the pose head reads motion_frames=2"):
+        model.predict_poses(hist, cmd, occ[:, -1])
+    with pytest.raises(ValueError, match=r"motion_frames: expected 0\.\.2"):
+        PoseHead(history=3, steps=2, motion_frames=3)

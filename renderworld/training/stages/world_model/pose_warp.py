@@ -196,12 +196,13 @@ def pose_terms(stage: PoseWarpStage, model: Any, batch: dict, inputs: str = "occ
     current = occ[:, st.history - 1]
     yaw_w = st.pose_yaw_weight
     steps = pose_step_weights(st.pose_step_weighting, st.future)
-    pred, _ = model.predict_poses(hist_poses, cmd, current)
+    history = occ[:, : st.history]
+    pred, _ = model.predict_poses(hist_poses, cmd, current, history, stage.grid)
     pl = pose_loss(pred, fut_poses, valid, yaw_weight=yaw_w, step_weights=steps)
     if model.training and st.pose_mirror:
         # The mirrored scene (y -> -y, left <-> right) is as plausible: twice the pose data.
         m_pred, _ = model.predict_poses(mirror_poses(hist_poses), mirror_command(cmd),
-                                        current.flip(2))  # fmt: skip
+                                        current.flip(2), history.flip(3), stage.grid)  # fmt: skip
         m = pose_loss(m_pred, mirror_poses(fut_poses), valid, yaw_weight=yaw_w, step_weights=steps)
         pl = {k: 0.5 * (pl[k] + m[k]) for k in pl}
     return pl
@@ -303,7 +304,9 @@ def pose_forecast(
     history = batch[setting.inputs][:, :h]
     cmd = batch["command"].long()
     device = batch["history_poses"].device
-    poses, _ = model.predict_poses(batch["history_poses"].float(), cmd, history[:, h - 1])
+    poses, _ = model.predict_poses(
+        batch["history_poses"].float(), cmd, history[:, h - 1], history, stage.grid
+    )
     codec = _StageCodec(stage, batch, setting, device)
     fc = pose_warp_forecast(model, history, batch["history_poses"], poses, cmd, stage.grid, codec)
     return {"model": fc.forecast, "model_warp": fc.warp, "model_net": fc.net}, poses

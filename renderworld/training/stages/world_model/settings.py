@@ -177,6 +177,7 @@ class StageSettings:
     pose_step_weighting: str = "uniform"
     movers: str = "static"
     pose_kinematics: bool = False
+    pose_motion_frames: int = 0
     pose_lr_scale: float = 1.0
     pose_warmup_steps: int = 0
     pose_joint_lr_scale: float | None = None
@@ -237,6 +238,11 @@ def stage_settings(cfg: Any) -> StageSettings:
     kinematics = s.get("pose_kinematics", False)
     if not isinstance(kinematics, bool):
         raise ValueError(f"stage.pose_kinematics: expected true or false, got {kinematics!r}")
+    motion = s.get("pose_motion_frames") or 0
+    if not isinstance(motion, int) or isinstance(motion, bool) or not 0 <= motion < history:
+        raise ValueError(
+            f"stage.pose_motion_frames: expected an int in 0..{history - 1}, got {motion!r}"
+        )
     lr_scale = _number(s, "pose_lr_scale", 1.0)
     if lr_scale <= 0:
         raise ValueError(f"stage.pose_lr_scale: expected a number > 0, got {lr_scale!r}")
@@ -284,6 +290,7 @@ def stage_settings(cfg: Any) -> StageSettings:
         pose_step_weighting=_choice(s, "pose_step_weighting", "uniform", POSE_STEP_WEIGHTINGS),
         movers=movers,
         pose_kinematics=kinematics,
+        pose_motion_frames=motion,
         pose_lr_scale=lr_scale,
         pose_warmup_steps=warmup,
         pose_joint_lr_scale=joint,
@@ -347,9 +354,10 @@ def build_world_model(
 ) -> WorldModel | PoseWarpWorldModel:
     """:class:`WorldModel` (``"tokens"``) or :class:`PoseWarpWorldModel` (``"pose_warp"``).
 
-    ``cfg``: the run config whose ``stage.pose_anchors`` (default ``"ctr"``) and
-    ``stage.pose_kinematics`` (default false) the pose head uses and whose ``stage.movers``
-    (default ``"static"``) the forecast applies (validated by :func:`stage_settings`).
+    ``cfg``: the run config whose ``stage.pose_anchors`` (default ``"ctr"``),
+    ``stage.pose_kinematics`` (default false) and ``stage.pose_motion_frames`` (default 0) the
+    pose head uses and whose ``stage.movers`` (default ``"static"``) the forecast applies
+    (validated by :func:`stage_settings`).
     """
     if kind != "pose_warp":
         return WorldModel(config)
@@ -357,7 +365,11 @@ def build_world_model(
         return PoseWarpWorldModel(config)
     st = stage_settings(cfg)
     return PoseWarpWorldModel(
-        config, anchors=st.pose_anchors, movers=st.movers, kinematics=st.pose_kinematics
+        config,
+        anchors=st.pose_anchors,
+        movers=st.movers,
+        kinematics=st.pose_kinematics,
+        motion_frames=st.pose_motion_frames,
     )
 
 
