@@ -3,6 +3,8 @@
 #   make demo   set up .venv and run the most complete job the package can do
 #   make dev    simulate the development fixture (mini preset, seed 1001) into data/sim_dev
 #               and convert it (infos under data/sim_dev/renderworld_infos/v1.0-mini)
+#   make dev-interactions  the interaction behaviours' development fixture (32 scenes, seed
+#               1002, occupancy only) into data/sim_dev_inter (v1.0-interactions)
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV ?= .venv
@@ -10,7 +12,7 @@ TORCH_SPEC ?= torch==2.13.0
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.renderworld-installed
 
-.PHONY: setup test test-all lint demo dev bench clean
+.PHONY: setup test test-all lint demo dev dev-interactions bench clean
 
 setup: $(STAMP)
 
@@ -47,6 +49,11 @@ demo: $(STAMP)
 dev: $(STAMP)
 	$(PY) tools/make_fixtures.py preset=mini seed=1001 out=data/sim_dev overwrite=true
 	$(PY) tools/create_data.py data_root=data/sim_dev version=v1.0-mini
+
+dev-interactions: $(STAMP)
+	$(PY) tools/make_fixtures.py preset=interactions seed=1002 num_scenes=32 mode=occupancy \
+	  out=data/sim_dev_inter overwrite=true
+	$(PY) tools/create_data.py data_root=data/sim_dev_inter version=v1.0-interactions labels=false
 
 # The accuracy-vs-time sweep after `make demo` (PRESET=quick|standard|full).
 PRESET ?= quick
