@@ -71,7 +71,8 @@ def motion_channels(
         frames: how many frames before the current one (t-1, t-2, ...), < H.
 
     Returns:
-        [B, frames, X, Y] float32: 1 where a frame's objects (classes 0-10) were, t-1 first.
+        [B, frames, X, Y] float32: the objects channel of :func:`bev_channels` (classes 0-10) of
+        each frame, t-1 first.
     """
     if history.dim() != 5 or tuple(history_poses.shape) != (*history.shape[:2], 3):
         raise ValueError(
@@ -83,8 +84,8 @@ def motion_channels(
         raise ValueError(f"frames: expected 1..{h - 1} (H = {h}), got {frames}")
     idx = list(range(h - 2, h - 2 - frames, -1))  # t-1, t-2, ...
     aligned = align_history(history[:, idx], history_poses[:, idx], grid)
-    objects = torch.tensor(BEV_GROUPS[-1], device=aligned.device)
-    return torch.isin(aligned.long(), objects).any(dim=-1).float()
+    b = aligned.shape[0]
+    return bev_channels(aligned.flatten(0, 1))[:, -1].view(b, frames, *aligned.shape[2:4])
 
 
 def invert_poses(poses: torch.Tensor) -> torch.Tensor:
