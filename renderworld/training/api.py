@@ -146,7 +146,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         stage.on_eval_start(model)
         loader = build_val_loader(stage, val_set, tcfg, info, _seed(cfg))
         precision = effective_precision(tcfg.precision, info.device)
-        metrics = run_validation(stage, model, loader, info, precision)
+        metrics = run_validation(stage, model, loader, info, precision, tcfg.progress_bar)
         metrics["step"] = float(ckpt["step"])
         if info.is_main:
             run_dir.mkdir(parents=True, exist_ok=True)

@@ -259,8 +259,9 @@ class Trainer:
         if self.val_loader is None:
             return {}
         return run_validation(
-            self.stage, self.eval_model, self.val_loader, self.info, self.precision
-        )
+            self.stage, self.eval_model, self.val_loader, self.info, self.precision,
+            self.tcfg.progress_bar,
+        )  # fmt: skip
 
     def _after_validation(self, metrics: dict[str, float]) -> None:
         self.val_metrics = metrics

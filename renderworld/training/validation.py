@@ -20,7 +20,13 @@ from renderworld.training.distributed import DistInfo, all_reduce_sum
 from renderworld.training.registry import Stage
 from renderworld.training.seed import rng_isolated
 
-__all__ = ["autocast_context", "effective_precision", "build_val_loader", "run_validation"]
+__all__ = [
+    "ProgressLoader",
+    "autocast_context",
+    "effective_precision",
+    "build_val_loader",
+    "run_validation",
+]
 
 
 #: Device types with an autocast implementation used here.
@@ -79,15 +85,53 @@ def build_val_loader(
     )
 
 
+class ProgressLoader:
+    """A loader whose iteration shows a tqdm bar (batches); every other attribute (``dataset``,
+    ``batch_size``, ...) is the wrapped loader's, so a stage cannot tell the two apart.
+
+    Args:
+        loader: any iterable of batches (its ``len`` gives the bar's total when it has one).
+        desc: the bar's label.
+    """
+
+    def __init__(self, loader: Any, desc: str = "validation"):
+        self.loader = loader
+        self.desc = desc
+
+    def __iter__(self):
+        from tqdm.auto import tqdm
+
+        total = len(self.loader) if hasattr(self.loader, "__len__") else None
+        with tqdm(total=total, desc=self.desc, unit="batch", leave=False,
+                  dynamic_ncols=True) as bar:  # fmt: skip
+            for batch in self.loader:
+                yield batch
+                bar.update(1)
+
+    def __len__(self) -> int:
+        return len(self.loader)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.loader, name)
+
+
 def run_validation(
-    stage: Stage, model: nn.Module, loader: DataLoader, info: DistInfo, precision: str
+    stage: Stage,
+    model: nn.Module,
+    loader: DataLoader,
+    info: DistInfo,
+    precision: str,
+    progress: bool = False,
 ) -> dict[str, float]:
     """Stage statistics on this rank's shard, summed over ranks, turned into ``val/`` metrics.
 
-    Global RNG states are left untouched, so validating does not change training.
+    Global RNG states are left untouched, so validating does not change training. With
+    ``progress`` the main rank shows a bar over the batches (:class:`ProgressLoader`).
     """
     was_training = model.training
     model.eval()
+    if progress and info.is_main:
+        loader = ProgressLoader(loader, f"{stage.name}: validation")
     try:
         with rng_isolated(), torch.no_grad(), autocast_context(precision, info.device):
             stats = stage.evaluate(model, loader)

@@ -344,3 +344,30 @@ def test_cuda_mixed_precision_learns(tmp_path, precision):
     ckpt = load_checkpoint(tmp_path / "checkpoints" / "last.pt", for_training=True)
     assert all(t.device.type == "cpu" for t in ckpt["model"].values())
     assert bool(ckpt["grad_scaler"]) == (precision == "fp16")
+
+
+def test_evaluate_shows_a_bar_over_the_batches_and_scores_the_same(tmp_path, capsys):
+    """A long evaluation shows its progress; the bar changes nothing in what is scored."""
+    train(fit_cfg(tmp_path / "run", "trainer.max_steps=5"))
+    capsys.readouterr()
+    out = {}
+    for bar in (True, False):
+        cfg = compose_cfg(
+            ["stage=regression", "trainer=cpu", f"trainer.progress_bar={bar}",
+             f"ckpt={tmp_path / 'run' / 'checkpoints' / 'last.pt'}",
+             f"run_dir={tmp_path / f'eval_{bar}'}"],
+            config_name="eval",
+        )  # fmt: skip
+        out[bar] = evaluate(cfg)
+        err = capsys.readouterr().err
+        assert ("regression: validation" in err) == bar
+    assert out[True] == out[False]
+
+
+def test_the_progress_loader_is_the_loader_to_a_stage():
+    from renderworld.training.validation import ProgressLoader
+
+    loader = torch.utils.data.DataLoader(list(range(7)), batch_size=3)
+    wrapped = ProgressLoader(loader, "x")
+    assert wrapped.dataset is loader.dataset and wrapped.batch_size == 3 and len(wrapped) == 3
+    assert [b.tolist() for b in wrapped] == [b.tolist() for b in loader]
