@@ -112,6 +112,8 @@ class ProgressLoader:
         return len(self.loader)
 
     def __getattr__(self, name: str) -> Any:
+        if name == "loader":  # not set yet (copy, unpickling): no endless recursion
+            raise AttributeError(name)
         return getattr(self.loader, name)
 
 

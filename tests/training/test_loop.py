@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import csv
 import random
 import sys
@@ -371,3 +372,4 @@ def test_the_progress_loader_is_the_loader_to_a_stage():
     wrapped = ProgressLoader(loader, "x")
     assert wrapped.dataset is loader.dataset and wrapped.batch_size == 3 and len(wrapped) == 3
     assert [b.tolist() for b in wrapped] == [b.tolist() for b in loader]
+    assert copy.copy(wrapped).loader is loader  # a copy is built before its loader is set
