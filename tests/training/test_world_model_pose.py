@@ -230,7 +230,8 @@ def _requests(batch, n: int) -> list:
 @pytest.mark.parametrize("movers", ["static", "object_cv"])
 def test_bundled_planner_reproduces_the_stage_forecast(wm_overrides, tmp_path, movers):
     """plan() on the bundled pose-warp model gives the stage's own evaluation outputs: the
-    planner is the model, not an approximation."""
+    planner is the model, not an approximation (the trajectory bit for bit; the forecast up
+    to the round-off of another batch composition)."""
     import numpy as np
 
     from renderworld.planning import PlannerSession, load_planner, save_planner_bundle
@@ -248,7 +249,14 @@ def test_bundled_planner_reproduces_the_stage_forecast(wm_overrides, tmp_path, m
         res = planner.plan_batch(reqs)
         for i, r in enumerate(res):
             np.testing.assert_array_equal(r.trajectory, traj["model"][i].numpy())
-            np.testing.assert_array_equal(r.occupancy_forecast, fc["model"][i].numpy())
+            # The stage encodes the history (cached per frame) apart from the warped frames and
+            # decodes step by step; the planner encodes and decodes in one batch. Kernels whose
+            # summation order follows the batch size (oneDNN on AVX-512 CPUs) can flip a code
+            # at a near-tie: allow 1 % of the voxels, a sixth of what the token network changes.
+            differ = (r.occupancy_forecast != fc["model"][i].numpy()).mean()
+            assert differ <= 0.01, (i, differ)
+            network = (fc["model"][i] != fc["model_warp"][i]).double().mean().item()
+            assert network >= 0.05, network  # the tolerance is far below the network's part
         # Batch of one: the same model, GEMMs of another batch size (float32 round-off only).
         one = planner.plan(reqs[1], forecast=False)
         np.testing.assert_allclose(one.trajectory, traj["model"][1].numpy(), rtol=0, atol=1e-5)
