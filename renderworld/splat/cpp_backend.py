@@ -61,6 +61,9 @@ def load_extension():
         from torch.utils.cpp_extension import load_inline
 
         build_dir.mkdir(parents=True, exist_ok=True)
+        # ninja keys the build by the source's path: a cache reached through a symlink under
+        # another name each time (a test session's temporary root) would recompile every time.
+        build_dir = build_dir.resolve()
         if not any(build_dir.glob("*.so")):
             _LOG.info("compiling the C++ rasterizer kernel into %s (once, ~30-60 s)", build_dir)
         module = load_inline(

@@ -1,6 +1,7 @@
 """Public API: validation messages, backend dispatch, the C++ kernel's fallback."""
 
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -120,6 +121,27 @@ def test_cpp_compile_failure_warns_and_auto_falls_back_to_torch(monkeypatch):
         assert torch.equal(a, b)
     with pytest.raises(ValueError, match=r"backend: 'cpp' requested but the C\+\+ CPU kernel"):
         rasterize(*args, backend="cpp")
+
+
+def test_the_kernel_builds_in_the_real_cache_path_behind_a_symlink(monkeypatch, tmp_path):
+    """ninja keys a build by its source path: a cache root reached through a symlink (a test
+    session's temporary root) must build where the link points, or every session recompiles."""
+    import torch.utils.cpp_extension as ext
+
+    real = tmp_path / "real"
+    real.mkdir()
+    (tmp_path / "link").symlink_to(real, target_is_directory=True)
+    monkeypatch.setenv("RENDERWORLD_CACHE_DIR", str(tmp_path / "link"))
+    seen = {}
+
+    def fake(**kwargs):
+        seen["dir"] = kwargs["build_directory"]
+        return object()
+
+    monkeypatch.setattr(ext, "load_inline", fake)
+    monkeypatch.setattr(cpp_backend, "_STATE", {})
+    assert cpp_backend.load_extension() is not None
+    assert Path(seen["dir"]).parent == real.resolve() / "splat_ext"
 
 
 def test_disable_env_var_turns_the_kernel_off(monkeypatch):
