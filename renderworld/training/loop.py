@@ -343,7 +343,9 @@ class Trainer:
             self._validate_and_log(logger)
         if saved_at != self.step:
             self.save("last.pt")
-        self.stage.on_train_end(self.eval_model, str(self.run_dir))
+        final = self.stage.on_train_end(self.eval_model, str(self.run_dir))
+        if final:  # the stage re-scored the final weights (Img2Occ: with its chosen readout)
+            self.val_metrics = {**self.val_metrics, **final}
         out: dict[str, float] = {k: v for k, v in window.last.items() if k == "train/loss"}
         out.update(self.val_metrics)
         out["step"] = float(self.step)

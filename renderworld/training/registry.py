@@ -130,8 +130,15 @@ class Stage(ABC):
     def on_train_start(self, model: nn.Module, run_dir: str) -> None:  # noqa: B027 - optional
         """Called once before the first step (also after a resume)."""
 
-    def on_train_end(self, model: nn.Module, run_dir: str) -> None:  # noqa: B027 - optional
-        """Called on every rank after the last step and the final checkpoint."""
+    def on_train_end(  # noqa: B027 - optional
+        self, model: nn.Module, run_dir: str
+    ) -> Mapping[str, float] | None:
+        """Called on every rank after the last step and the final checkpoint.
+
+        Returns:
+            Validation metrics of the final weights that replace the loop's last ones in what
+            ``train`` returns and logs (e.g. scored with a readout chosen here), or None.
+        """
 
     def on_eval_start(self, model: nn.Module) -> None:  # noqa: B027 - optional
         """Called by ``evaluate(cfg)`` on every rank once the checkpoint's weights are loaded,

@@ -177,7 +177,7 @@ def test_training_gives_finite_occ3d_metrics(trained):
 
 
 def test_threshold_chosen_at_train_end_is_in_both_checkpoints(trained):
-    _, _, run, _ = trained
+    _, _, run, metrics = trained
     summary = json.loads((run / "threshold.json").read_text())
     for name in ("last.pt", "best.pt"):
         ckpt = load_checkpoint(run / "checkpoints" / name, "img2occ")
@@ -190,6 +190,11 @@ def test_threshold_chosen_at_train_end_is_in_both_checkpoints(trained):
         assert record["metrics_at_initial"]["val/cam/iou"] == 0.0
         assert ckpt["metrics"]["val/cam/iou"] > 0.0
     assert load_checkpoint(run / "checkpoints" / "best.pt")["step"] == 2  # own weights, own search
+    # train() returns (and logs) the final weights scored with their chosen readout.
+    last = load_checkpoint(run / "checkpoints" / "last.pt", "img2occ")
+    for key in ("val/cam/miou", "val/cam/iou", "val/full/miou"):
+        assert metrics[key] == last["metrics"][key], key
+    assert metrics["val/cam/iou"] != last["threshold"]["metrics_at_initial"]["val/cam/iou"]
 
 
 def test_eval_tool_uses_the_stored_threshold_and_writes_picture_and_table(trained, tmp_path):

@@ -185,7 +185,7 @@ class ThresholdMixin:
             ", with class offsets" if record["class_offsets"] else "",
         )
 
-    def on_train_end(self, model: nn.Module, run_dir: str) -> None:
+    def on_train_end(self, model: nn.Module, run_dir: str) -> dict[str, float] | None:
         """Rank 0: choose the readout threshold for ``last.pt`` and ``best.pt`` and re-save them.
 
         Each checkpoint gets the threshold chosen on the training split for its own weights,
@@ -193,9 +193,12 @@ class ThresholdMixin:
         scores per candidate, the validation metrics at the initial threshold) and ``metrics``
         recomputed on the validation split with it; ``<run_dir>/threshold.json`` sums it up.
         The in-memory model ends with ``last.pt``'s threshold.
+
+        Returns:
+            ``last.pt``'s validation metrics with its readout (None on other ranks).
         """
         if not _is_main():
-            return
+            return None
         ckpt_dir = Path(run_dir) / "checkpoints"
         data = self._threshold_set()
         was_training = model.training
@@ -235,6 +238,7 @@ class ThresholdMixin:
             {k: v["value"] for k, v in summary.items()},
             {k: v["val_metrics"].get("val/cam/miou") for k, v in summary.items()},
         )
+        return summary["last.pt"]["val_metrics"]
 
     @staticmethod
     def _resave(path: Path, ckpt: dict, model: Img2Occ, record: dict, metrics: dict) -> None:
