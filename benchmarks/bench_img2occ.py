@@ -21,6 +21,7 @@ CPU when it builds, else the tiled torch backend); the backend used is printed.
 Usage:
     PYTHONPATH=. python benchmarks/bench_img2occ.py [--grids coarse,occ3d] [--repeats 3]
         [--backend auto] [--views 3] [--threads 2] [--device cpu] [--depth-bins 40]
+        [--precision 32|bf16|fp16] [--batch 1] [--prunes 0,1] [--profile-out FILE]
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from steptime import run_point, time_steps
 
 from renderworld.constants import CAMERA_NAMES, NUM_SEMANTIC_CLASSES, get_grid
 from renderworld.geometry import pose_matrix
+from renderworld.training.validation import autocast_context
 
 # docs/formats.md#sensors-and-calibration (n015): translation, rotation [w, x, y, z], fx, cx, cy
 # at 1600x900.
@@ -54,22 +56,45 @@ def _k(ci: int, w: int, h: int) -> np.ndarray:
     return np.array([[f * sx, 0, cx * sx], [0, f * sy, cy * sy], [0, 0, 1]])
 
 
-def make_batch(input_hw, render_hw, device, seed=0) -> dict:
+def make_batch(input_hw, render_hw, device, seed=0, batch_size=1) -> dict:
     g = torch.Generator().manual_seed(seed)
-    c = len(CAMERA_NAMES)
+    c, b = len(CAMERA_NAMES), batch_size
     (hi, wi), (hr, wr) = input_hw, render_hw
-    depth = torch.rand(1, c, hr, wr, generator=g) * 50 + 1
-    keep = torch.rand(1, c, hr, wr, generator=g) < 0.4
-    sem = torch.randint(0, NUM_SEMANTIC_CLASSES, (1, c, hr, wr), generator=g)
+    depth = torch.rand(b, c, hr, wr, generator=g) * 50 + 1
+    keep = torch.rand(b, c, hr, wr, generator=g) < 0.4
+    sem = torch.randint(0, NUM_SEMANTIC_CLASSES, (b, c, hr, wr), generator=g)
+
+    def rep(x: torch.Tensor) -> torch.Tensor:
+        return x[None].expand(b, *x.shape).contiguous()
+
     batch = {
-        "images": torch.rand(1, c, 3, hi, wi, generator=g),
-        "intrinsics": torch.tensor(np.stack([_k(i, wi, hi) for i in range(c)]))[None],
-        "render_intrinsics": torch.tensor(np.stack([_k(i, wr, hr) for i in range(c)]))[None],
-        "cam_to_ego": torch.tensor(np.stack([pose_matrix(t, q) for t, q, *_ in CALIB]))[None],
+        "images": torch.rand(b, c, 3, hi, wi, generator=g),
+        "intrinsics": rep(torch.tensor(np.stack([_k(i, wi, hi) for i in range(c)]))),
+        "render_intrinsics": rep(torch.tensor(np.stack([_k(i, wr, hr) for i in range(c)]))),
+        "cam_to_ego": rep(torch.tensor(np.stack([pose_matrix(t, q) for t, q, *_ in CALIB]))),
         "depth": torch.where(keep, depth, torch.zeros_like(depth)),
         "semantics": torch.where(keep, sem, torch.full_like(sem, 255)),
     }
     return {k: (v.float() if v.is_floating_point() else v).to(device) for k, v in batch.items()}
+
+
+def _profile(step, device: torch.device, path: str, steps: int = 3) -> None:
+    """Write ``torch.profiler``'s operator table of ``steps`` steps to ``path``: by device time
+    (CUDA) or CPU time, plus the host's wall time per step, to see whether the device waits."""
+    import time
+
+    from torch.profiler import ProfilerActivity, profile
+
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    t0 = time.perf_counter()
+    with profile(activities=acts) as prof:
+        for _ in range(steps):
+            step()
+    wall = (time.perf_counter() - t0) / steps
+    key = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    table = prof.key_averages().table(sort_by=key, row_limit=25)
+    with open(path, "w") as f:
+        f.write(f"{steps} steps profiled, wall {wall * 1e3:.1f} ms a step (profiler on)\n{table}\n")
 
 
 def run_one(args) -> dict:
@@ -95,13 +120,14 @@ def run_one(args) -> dict:
         bias = model.head.out.bias.view(z, -1)
         bias[:, 10] = -9.0
         bias[: args.occupied_layers, 10] = 2.2
-    batch = make_batch(cfg.input_size, cfg.render_size, device)
+    batch = make_batch(cfg.input_size, cfg.render_size, device, batch_size=args.batch)
     opt = torch.optim.SGD(model.parameters(), lr=1e-6)
     model.train()
 
     def step():
-        out = model(batch)
-        loss, logs = model.loss(batch, out)
+        with autocast_context(args.precision, device):
+            out = model(batch)
+            loss, logs = model.loss(batch, out)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -117,12 +143,16 @@ def run_one(args) -> dict:
         backend = next(n for n in ("gsplat", "cpp", "torch") if n in names)
     timing = time_steps(lambda _i: step(), args.repeats, device)  # warm-up builds the C++ kernel
     logs = timing.warmup
+    if args.profile_out:
+        _profile(step, device, args.profile_out)
     return {
         "grid": args.grid,
         "anchors": grid.num_voxels,
         "prune": prune,
         "rendered": float(logs["gaussians_rendered"]),
         "backend": backend,
+        "precision": args.precision,
+        "batch": args.batch,
         "step_s": timing.step_s,
         "peak_mb": timing.peak_mb,
     }
@@ -142,6 +172,10 @@ def main() -> None:
     )
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--precision", default="32", choices=("32", "bf16", "fp16"), help="autocast")
+    p.add_argument("--batch", type=int, default=1, help="samples per step")
+    p.add_argument("--prunes", default="0,1", help="opacity pruning off (0) and/or on (1)")
+    p.add_argument("--profile-out", default="", help="write the operator profile here (one point)")
     p.add_argument("--timeout", type=int, default=1800)
     p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--grid", default="coarse", help=argparse.SUPPRESS)
@@ -153,24 +187,25 @@ def main() -> None:
     rows = []
     for grid in args.grids.split(","):
         layers = args.occupied_layers or max(1, get_grid(grid).shape[2] // 8)
-        for prune in (0, 1):
+        for prune in (int(x) for x in args.prunes.split(",")):
             cmd = [sys.executable, __file__, "--one", "--grid", grid, "--prune", str(prune)]
             cmd += ["--repeats", str(args.repeats), "--backend", args.backend]
             cmd += ["--views", str(args.views), "--threads", str(args.threads)]
             cmd += ["--input", *map(str, args.input), "--render", *map(str, args.render)]
             cmd += ["--occupied-layers", str(layers), "--device", args.device]
-            cmd += ["--depth-bins", str(args.depth_bins)]
+            cmd += ["--depth-bins", str(args.depth_bins), "--precision", args.precision]
+            cmd += ["--batch", str(args.batch), "--profile-out", args.profile_out]
             row = run_point(cmd, f"{grid} prune={prune}", args.timeout)
             if row is not None:
                 rows.append(row)
     print(
         f"\nImg2Occ training step (forward + loss + backward), 6 cameras at "
         f"{args.input[0]}x{args.input[1]}, {args.views} rendered at "
-        f"{args.render[0]}x{args.render[1]}, device {args.device}, {args.threads} threads, "
-        f"depth bins {args.depth_bins}"
+        f"{args.render[0]}x{args.render[1]}, batch {args.batch}, device {args.device}, "
+        f"{args.threads} threads, depth bins {args.depth_bins}, precision {args.precision}"
     )
     print(f"{'grid':8} {'anchors':>8} {'pruning':>8} {'rendered':>9} {'backend':>8} "
-          f"{'step s':>8} {'peak MB':>9} {'vs unpruned':>12}")  # fmt: skip
+          f"{'step ms':>8} {'steps/s':>8} {'peak MB':>9} {'vs unpruned':>12}")  # fmt: skip
     base = {}
     for r in rows:
         if r["prune"] == 0:
@@ -180,8 +215,8 @@ def main() -> None:
         ratio = f"{r['step_s'] / b['step_s']:.2f}x t" if b and r is not b else ""
         print(
             f"{r['grid']:8} {r['anchors']:>8} {('1/255' if r['prune'] else 'off'):>8} "
-            f"{int(r['rendered']):>9} {r['backend']:>8} {r['step_s']:>8.2f} "
-            f"{r['peak_mb']:>9.0f} {ratio:>12}"
+            f"{int(r['rendered']):>9} {r['backend']:>8} {r['step_s'] * 1e3:>8.1f} "
+            f"{1.0 / r['step_s']:>8.2f} {r['peak_mb']:>9.0f} {ratio:>12}"
         )
 
 

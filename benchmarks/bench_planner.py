@@ -34,6 +34,8 @@ Modes, all on the same tokenizer and world model weights, one new frame per plan
   main job's kind: ``stage.forecaster=pose_warp``, anchors ``ctr_cv``) on the same tokenizer,
   session, forecast on / off. With ``--device cuda`` this is the GPU check of both world
   models in one run.
+* ``pw checked``: ``pw full`` with ``check=True``: the candidates around the plan tracked and
+  scored against the forecast (``renderworld.planning.checked``).
 
 Cases:
 
@@ -113,7 +115,9 @@ def agreement(models, grid, device: str) -> str:
     return "; ".join(out)
 
 
-MODES = ("today", "new full", "new traj", "full bf16", "fast plan", "pw full", "pw traj")
+MODES = (
+    "today", "new full", "new traj", "full bf16", "fast plan", "pw full", "pw traj", "pw checked"
+)  # fmt: skip
 
 
 def bench_case(models, grid, device: str, reps: int, wanted) -> dict[str, dict]:
@@ -130,10 +134,14 @@ def bench_case(models, grid, device: str, reps: int, wanted) -> dict[str, dict]:
     }
     modes["fast plan"] = (fast, _run_fast_plan)
     planners = [fast, bf16]
-    if {"pw full", "pw traj"} & set(wanted):
+    if {"pw full", "pw traj", "pw checked"} & set(wanted):
         pw = Planner(tok, pose_warp_model(wm), device=device)
         modes.update(
-            {"pw full": (pw, session_runner(True)), "pw traj": (pw, session_runner(False))}
+            {
+                "pw full": (pw, session_runner(True)),
+                "pw traj": (pw, session_runner(False)),
+                "pw checked": (pw, session_runner(True, check=True)),  # candidates scored
+            }
         )
         planners.append(pw)
     modes = {k: v for k, v in modes.items() if k in wanted}
