@@ -144,6 +144,17 @@ def test_learned_movers_train_score_and_plan_as_the_stage_forecasts(wm_overrides
         np.testing.assert_array_equal(r.occupancy_forecast, fc["model"][i].numpy())
 
 
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_learned_movers_fit_and_train_on_cuda(wm_overrides, tmp_path):
+    """The mover head is fitted on the run's device (it once read CPU tensors into CUDA weights)."""
+    cuda = ["trainer.device=cuda", "trainer.precision=bf16"]
+    metrics = train(compose_cfg([*wm_overrides, *LEARNED, *cuda, f"run_dir={tmp_path}",
+                                 "trainer.max_steps=2", "trainer.val_every=2"]))  # fmt: skip
+    assert math.isfinite(metrics[f"val/{MODEL_MOVERS}/movers_miou_1s"])
+    assert math.isfinite(metrics["val/motion/model/all/fde_1s"])
+
+
 def test_behaviour_pictures_take_the_second_window_of_the_first_scene():
     from renderworld.training.stages.world_model.pictures import behaviour_windows
 

@@ -102,10 +102,14 @@ def mover_samples(batch: dict, history: int, future: int, grid: GridSpec) -> Mov
 
 
 def _loss(head: MoverHead, inp: MoverInputs, target: np.ndarray, valid: np.ndarray) -> torch.Tensor:
-    pred = head(*(torch.from_numpy(np.ascontiguousarray(a)) for a in (inp.feats, inp.patches,
-                                                                        inp.base)))  # fmt: skip
-    err = torch.nn.functional.smooth_l1_loss(pred, torch.from_numpy(target), reduction="none")
-    m = torch.from_numpy(valid).float()
+    dev = next(head.parameters()).device
+
+    def put(a: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(a)).to(dev)
+
+    pred = head(put(inp.feats), put(inp.patches), put(inp.base))
+    err = torch.nn.functional.smooth_l1_loss(pred, put(target), reduction="none")
+    m = put(valid).float()
     return (err.sum(-1) * m).sum() / m.sum().clamp_min(1.0)
 
 
@@ -125,7 +129,7 @@ def fit_mover_head(
     """Fit ``head`` alone on the movers of ``dataset``'s windows (module docstring).
 
     Args:
-        head: the mover head (trained in place, on the CPU).
+        head: the mover head (trained in place, on its own device).
         dataset: world-model training windows (items with ``occ``, ``history_poses`` and boxes).
         history, future: H and S of the windows; grid: the occupancy grid.
         steps: optimiser steps; lr: peak learning rate (5 % linear warm-up, then cosine).
