@@ -21,7 +21,7 @@ CPU when it builds, else the tiled torch backend); the backend used is printed.
 Usage:
     PYTHONPATH=. python benchmarks/bench_img2occ.py [--grids coarse,occ3d] [--repeats 3]
         [--backend auto] [--views 3] [--threads 2] [--device cpu] [--depth-bins 40]
-        [--precision 32|bf16|fp16] [--batch 1] [--prunes 0,1] [--profile-out FILE]
+        [--precision 32|bf16|fp16] [--batch 1] [--prunes 0,1] [--profile-out FILE] [--dense-lift]
 """
 
 from __future__ import annotations
@@ -113,6 +113,7 @@ def run_one(args) -> dict:
         prune_opacity=prune,
         render_backend=args.backend,
         depth_bins=args.depth_bins,
+        lift_sparse=not args.dense_lift,
     )
     model = Img2Occ(cfg).to(device)
     z = grid.shape[2]
@@ -174,6 +175,7 @@ def main() -> None:
     p.add_argument("--device", default="cpu")
     p.add_argument("--precision", default="32", choices=("32", "bf16", "fp16"), help="autocast")
     p.add_argument("--batch", type=int, default=1, help="samples per step")
+    p.add_argument("--dense-lift", action="store_true", help="lift at every voxel (reference)")
     p.add_argument("--prunes", default="0,1", help="opacity pruning off (0) and/or on (1)")
     p.add_argument("--profile-out", default="", help="write the operator profile here (one point)")
     p.add_argument("--timeout", type=int, default=1800)
@@ -195,6 +197,7 @@ def main() -> None:
             cmd += ["--occupied-layers", str(layers), "--device", args.device]
             cmd += ["--depth-bins", str(args.depth_bins), "--precision", args.precision]
             cmd += ["--batch", str(args.batch), "--profile-out", args.profile_out]
+            cmd += ["--dense-lift"] if args.dense_lift else []
             row = run_point(cmd, f"{grid} prune={prune}", args.timeout)
             if row is not None:
                 rows.append(row)
@@ -202,7 +205,8 @@ def main() -> None:
         f"\nImg2Occ training step (forward + loss + backward), 6 cameras at "
         f"{args.input[0]}x{args.input[1]}, {args.views} rendered at "
         f"{args.render[0]}x{args.render[1]}, batch {args.batch}, device {args.device}, "
-        f"{args.threads} threads, depth bins {args.depth_bins}, precision {args.precision}"
+        f"{args.threads} threads, depth bins {args.depth_bins}, precision {args.precision}, "
+        f"lifting {'dense' if args.dense_lift else 'sparse'}"
     )
     print(f"{'grid':8} {'anchors':>8} {'pruning':>8} {'rendered':>9} {'backend':>8} "
           f"{'step ms':>8} {'steps/s':>8} {'peak MB':>9} {'vs unpruned':>12}")  # fmt: skip

@@ -65,6 +65,8 @@ class Img2OccConfig:
         head_channels: channels of the BEV head (height folded into channels).
         head_blocks: residual 3x3 blocks in the BEV head.
         lift_near: voxels closer than this camera z (metres) are not seen by that camera.
+        lift_sparse: sample each camera's features only at the voxels it sees (same values;
+            False: every voxel, the reference twin of ``lift_features``).
         scale_range: (s_min, s_max) Gaussian scales as fractions of the smallest voxel edge
             (GaussianFormer's [0.08, 0.32] m at 0.4 m voxels is (0.2, 0.8)).
         init_opacity: opacity of every Gaussian at initialisation (head bias).
@@ -145,6 +147,7 @@ class Img2OccConfig:
     head_channels: int = 128
     head_blocks: int = 2
     lift_near: float = 0.1
+    lift_sparse: bool = True
     scale_range: tuple[float, float] = (0.2, 0.8)
     init_opacity: float = 0.1
     views_per_step: int | None = 3

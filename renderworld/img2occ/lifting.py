@@ -60,6 +60,7 @@ def lift_features(
     class_probs: torch.Tensor | None = None,
     edges: torch.Tensor | None = None,
     radius: float = 0.0,
+    sparse: bool = True,
 ) -> LiftResult:
     """Sample per-camera feature maps at the projections of voxel centres.
 
@@ -78,6 +79,10 @@ def lift_features(
             the feature resolution or any other (e.g. a finer semantic map).
         edges: [D + 1] equal-width depth-bin edges, metres camera z.
         radius: half the depth extent of a voxel along a ray, metres (> 0).
+        sparse: sample each camera only at the voxels it sees (a camera sees about a fifth of
+            them; the sampler's backward scatters into a small feature map, so the unseen
+            voxels' zero gradients cost most of its time). False: every voxel, the reference
+            twin; both give the same values.
 
     Returns:
         :class:`LiftResult`.
@@ -96,8 +101,8 @@ def lift_features(
     dir_sum = features.new_zeros(b, v, 3)
     k = class_probs.shape[2] if depth_aware else 0
     extra_sum = features.new_zeros(b, 2 + k, v) if depth_aware else None
-    # One camera at a time: the [B, D, V] sample of one camera is the peak, not C of them
-    # (640k voxels x 64 channels x 6 cameras would be ~1 GB per sample).
+    # Every camera's projection first, then the voxels each camera sees (one host sync for all).
+    views = []
     for ci in range(c):
         rot = ego_to_cam[:, ci, :3, :3]
         trans = ego_to_cam[:, ci, :3, 3]
@@ -105,15 +110,22 @@ def lift_features(
         uv, z, _ = project_points(pts, intrinsics[:, ci].to(dtype), near=near)
         seen = (z > near) & (uv >= 0).all(-1) & (uv < size).all(-1)  # [B, V]
         grid = (2.0 * uv / size - 1.0).clamp(-2.0, 2.0)  # invisible ones are masked anyway
-        m = seen.to(dtype)
-        if depth_aware:
-            sample, extras = _sample_depth_aware(
-                features[:, ci], depth_cdf[:, ci], class_probs[:, ci], grid, z, m, edges, radius
-            )
-            extra_sum = extra_sum + extras
-        else:
-            sample = _sample(features[:, ci], grid)
-        feat_sum = feat_sum + sample * m[:, None]
+        views.append((grid, z, seen.to(dtype)))
+    index = _seen_voxels([m for _, _, m in views], sparse)
+    # One camera at a time: the [B, D, n] sample of one camera is the peak, not C of them
+    # (640k voxels x 64 channels x 6 cameras would be ~1 GB per sample).
+    for ci, (grid, z, m) in enumerate(views):
+        idx = index[ci]
+        if idx.numel():
+            g, zi, mi = grid[:, idx], z[:, idx], m[:, idx]
+            if depth_aware:
+                sample, extras = _sample_depth_aware(
+                    features[:, ci], depth_cdf[:, ci], class_probs[:, ci], g, zi, mi, edges, radius
+                )
+                extra_sum = extra_sum.index_add(2, idx, extras)
+            else:
+                sample = _sample(features[:, ci], g)
+            feat_sum = feat_sum.index_add(2, idx, sample * mi[:, None])
         count = count + m
         depth_sum = depth_sum + z * m
         origin = cam_to_ego[:, ci, :3, 3].to(dtype)  # camera centre in ego
@@ -130,8 +142,20 @@ def lift_features(
     )
 
 
+def _seen_voxels(masks: list[torch.Tensor], sparse: bool) -> list[torch.Tensor]:
+    """Per camera, the [n] indices of the voxels it sees in some sample of the batch (all V
+    voxels when not ``sparse``), from its [B, V] visibility ``masks``."""
+    v, dev = masks[0].shape[1], masks[0].device
+    if not sparse:
+        return [torch.arange(v, device=dev)] * len(masks)
+    seen = torch.stack([m.amax(0) > 0 for m in masks])  # [C, V]
+    cam, vox = seen.nonzero(as_tuple=True)  # camera-major order
+    sizes = torch.bincount(cam, minlength=len(masks)).tolist()
+    return list(vox.split(sizes))
+
+
 def _sample(maps: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    """Bilinear samples of [B, D, h, w] maps at normalised points [B, V, 2] -> [B, D, V]."""
+    """Bilinear samples of [B, D, h, w] maps at normalised points [B, n, 2] -> [B, D, n]."""
     return F.grid_sample(
         maps, grid[:, None], mode="bilinear", padding_mode="border", align_corners=False
     )[:, :, 0]
@@ -145,12 +169,12 @@ def _sample_depth_aware(
     Args:
         maps: [B, D, h, w] features; depth_cdf: [B, D_bins + 1, h, w] per-pixel depth CDF at
             ``edges``; class_probs: [B, K, h', w'] class probabilities (any resolution).
-        grid: [B, V, 2] normalised pixel coordinates of the voxel centres.
-        z: [B, V] camera z of the voxel centres, metres; seen: [B, V] 1 where visible.
+        grid: [B, n, 2] normalised pixel coordinates of n voxel centres.
+        z: [B, n] camera z of the voxel centres, metres; seen: [B, n] 1 where visible.
         edges: [D_bins + 1] depth-bin edges, metres; radius: half a voxel's depth extent.
 
     Returns:
-        ``(features [B, D, V] weighted by the mass, extras [B, 2 + K, V])``: extras are the
+        ``(features [B, D, n] weighted by the mass, extras [B, 2 + K, n])``: extras are the
         mass, the CDF before the voxel and the mass-weighted class probabilities, masked.
     """
     dtype, d, n_edges = maps.dtype, maps.shape[1], edges.numel()

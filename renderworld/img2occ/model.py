@@ -154,8 +154,9 @@ class Img2Occ(nn.Module):
                 "radius": 0.5 * float(sum(self.cfg.grid.voxel_size)) / 3.0,
             }
         lift = lift_features(
-            feats, batch["cam_to_ego"], k_feat, self.centres, self.cfg.lift_near, **extra
-        )
+            feats, batch["cam_to_ego"], k_feat, self.centres, self.cfg.lift_near,
+            sparse=self.cfg.lift_sparse, **extra,
+        )  # fmt: skip
         seen = (lift.count > 0).to(feats.dtype)
         enc = torch.cat(
             [

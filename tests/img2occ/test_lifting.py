@@ -113,3 +113,44 @@ def test_lift_validates_shapes():
         lift_features(feats, cam, ks, torch.zeros(2, 4, dtype=torch.float64))
     with pytest.raises(ValueError, match="features"):
         lift_features(feats[0], cam, ks, torch.zeros(2, 3, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("depth_aware", [False, True])
+def test_sampling_only_the_seen_voxels_equals_the_dense_reference(depth_aware):
+    """The default (each camera sampled at the voxels it sees) gives the dense twin's values and
+    gradients: a batch of 2 whose cameras see different voxels, one camera seeing none."""
+    g = torch.Generator().manual_seed(0)
+    poses = [_forward_camera(0.0), _forward_camera(120.0), _forward_camera(240.0)]
+    away = _forward_camera(0.0)
+    away[:3, 3] = [500.0, 0.0, 1.5]  # far ahead, looking further ahead: sees no voxel
+    cams = torch.tensor(np.stack([np.stack(poses), np.stack([poses[0], poses[1], away])]))
+    ks = torch.tensor(np.stack([_k()] * 3))[None].expand(2, 3, 3, 3)
+    centres = torch.rand(400, 3, generator=g, dtype=torch.float64) * 40 - 20
+    feats = torch.randn(2, 3, D, H, W, generator=g, dtype=torch.float64)
+    extra = {}
+    if depth_aware:
+        edges = torch.linspace(0.0, 30.0, 7, dtype=torch.float64)
+        cdf = torch.rand(2, 3, 7, H, W, generator=g, dtype=torch.float64).cumsum(2) / 7
+        probs = torch.rand(2, 3, 5, 2 * H, 2 * W, generator=g, dtype=torch.float64)
+        extra = {"depth_cdf": cdf, "class_probs": probs, "edges": edges, "radius": 0.8}
+    outs, grads = [], []
+    for sparse in (True, False):
+        x = feats.clone().requires_grad_(True)
+        ins = {k: (v.clone().requires_grad_(True) if k in ("depth_cdf", "class_probs") else v)
+               for k, v in extra.items()}  # fmt: skip
+        out = lift_features(x, cams, ks, centres, sparse=sparse, **ins)
+        loss = (out.features**2).sum() + (out.extras.sum() if depth_aware else 0.0)
+        loss.backward()
+        outs.append(out)
+        grads.append([x.grad, *(ins[k].grad for k in ("depth_cdf", "class_probs") if k in ins)])
+    assert 0 < (outs[0].count > 0).float().mean() < 1  # some voxels seen, some not
+    assert outs[0].count[1].max() <= 2  # the second sample's third camera sees nothing
+    for name in ("features", "count", "depth", "view_dir", "extras"):
+        a, b = getattr(outs[0], name), getattr(outs[1], name)
+        if a is None:
+            assert b is None
+            continue
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+    for a, b in zip(grads[0], grads[1], strict=True):
+        assert a.abs().sum() > 0
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
