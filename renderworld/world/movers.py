@@ -112,9 +112,11 @@ def bev_components(frame: np.ndarray, grid: GridSpec) -> list[tuple[int, np.ndar
         if not bev.any():
             continue
         labels, n = ndimage.label(bev, structure=_EIGHT)
-        for j in range(1, n + 1):
-            cells = labels == j
-            ix, iy = np.nonzero(cells)
+        for j, box in enumerate(ndimage.find_objects(labels), start=1):  # bounding boxes
+            cells = np.zeros(bev.shape, dtype=bool)
+            cells[box] = labels[box] == j
+            ix, iy = np.nonzero(cells[box])
+            ix, iy = ix + box[0].start, iy + box[1].start
             c = np.array([grid.range_min[0] + (ix.mean() + 0.5) * sx,
                           grid.range_min[1] + (iy.mean() + 0.5) * sy])  # fmt: skip
             out.append((cls, cells, c))

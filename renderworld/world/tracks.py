@@ -111,28 +111,33 @@ def track_movers(
     if poses.shape != (t_n, 3):
         raise ValueError(f"history_poses: expected [{t_n}, 3], got {poses.shape}")
     current = bev_components(occ[-1], grid)
+    cur_cls = np.array([cls for cls, _, _ in current])
     seen_t = [[0.0] for _ in current]
     seen_c = [[c] for _, _, c in current]
     for k in range(t_n - 2, -1, -1):
         past = bev_components(occ[k], grid)
         if not past or not current:
             continue
-        past_c = _to_current(past, poses[k])
+        past_c = np.stack(_to_current(past, poses[k]))  # [M, 2]
+        past_cls = np.array([pcls for pcls, _, _ in past])
         t_k = (k - (t_n - 1)) * dt
-        pairs = []
+        preds, gates = np.empty((len(current), 2)), np.empty(len(current))
         for i, (cls, _, _) in enumerate(current):
             times, cents = np.array(seen_t[i]), np.array(seen_c[i])
             vel = _fit(times, cents)
             gap = times[-1] - t_k
-            pred = cents[-1] - vel * gap
+            preds[i] = cents[-1] - vel * gap
             speed = GATE_SPEED_MPS if len(times) > 1 else MAX_SPEED_MPS[cls]
-            gate = GATE_M + speed * gap
-            for j, (pcls, _, _) in enumerate(past):
-                d = float(np.linalg.norm(past_c[j] - pred))
-                if pcls == cls and d <= gate:
-                    pairs.append((d, i, j))
+            gates[i] = GATE_M + speed * gap
+        diff = past_c[None] - preds[:, None]  # [N, M, 2]
+        dist = np.sqrt(diff[..., 0] ** 2 + diff[..., 1] ** 2)
+        ok = (cur_cls[:, None] == past_cls[None]) & (dist <= gates[:, None])
+        ii, jj = np.nonzero(ok)
+        dd = dist[ii, jj]
+        order = np.lexsort((jj, ii, dd))  # closest pairs first; ties by (i, j)
+        pairs = zip(dd[order], ii[order].tolist(), jj[order].tolist(), strict=True)
         used_i, used_j = set(), set()
-        for _, i, j in sorted(pairs):
+        for _, i, j in pairs:
             if i in used_i or j in used_j:
                 continue
             used_i.add(i)
