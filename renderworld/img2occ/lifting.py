@@ -79,10 +79,10 @@ def lift_features(
             the feature resolution or any other (e.g. a finer semantic map).
         edges: [D + 1] equal-width depth-bin edges, metres camera z.
         radius: half the depth extent of a voxel along a ray, metres (> 0).
-        sparse: sample each camera only at the voxels it sees (a camera sees about a fifth of
-            them; the sampler's backward scatters into a small feature map, so the unseen
-            voxels' zero gradients cost most of its time). False: every voxel, the reference
-            twin; both give the same values.
+        sparse: sample each camera only at the voxels it sees (14-25 % of the Occ3D grid for
+            each n015 camera; the sampler's backward scatters into a small feature map, so the
+            unseen voxels' zero gradients cost most of its time). False: every voxel, the
+            reference twin; both give the same values.
 
     Returns:
         :class:`LiftResult`.
@@ -101,7 +101,8 @@ def lift_features(
     dir_sum = features.new_zeros(b, v, 3)
     k = class_probs.shape[2] if depth_aware else 0
     extra_sum = features.new_zeros(b, 2 + k, v) if depth_aware else None
-    # Every camera's projection first, then the voxels each camera sees (one host sync for all).
+    # Every camera's projection first, so that the host waits for the visibility once, not per
+    # camera (sparse: the seen voxels' indices must be known on the host).
     views = []
     for ci in range(c):
         rot = ego_to_cam[:, ci, :3, :3]
@@ -111,21 +112,21 @@ def lift_features(
         seen = (z > near) & (uv >= 0).all(-1) & (uv < size).all(-1)  # [B, V]
         grid = (2.0 * uv / size - 1.0).clamp(-2.0, 2.0)  # invisible ones are masked anyway
         views.append((grid, z, seen.to(dtype)))
-    index = _seen_voxels([m for _, _, m in views], sparse)
+    index = _seen_voxels([m for _, _, m in views]) if sparse else [None] * c
     # One camera at a time: the [B, D, n] sample of one camera is the peak, not C of them
     # (640k voxels x 64 channels x 6 cameras would be ~1 GB per sample).
     for ci, (grid, z, m) in enumerate(views):
         idx = index[ci]
-        if idx.numel():
-            g, zi, mi = grid[:, idx], z[:, idx], m[:, idx]
+        if idx is None or idx.numel():
+            g, zi, mi = (grid, z, m) if idx is None else (grid[:, idx], z[:, idx], m[:, idx])
             if depth_aware:
                 sample, extras = _sample_depth_aware(
                     features[:, ci], depth_cdf[:, ci], class_probs[:, ci], g, zi, mi, edges, radius
                 )
-                extra_sum = extra_sum.index_add(2, idx, extras)
+                extra_sum = _accumulate(extra_sum, idx, extras)
             else:
                 sample = _sample(features[:, ci], g)
-            feat_sum = feat_sum.index_add(2, idx, sample * mi[:, None])
+            feat_sum = _accumulate(feat_sum, idx, sample * mi[:, None])
         count = count + m
         depth_sum = depth_sum + z * m
         origin = cam_to_ego[:, ci, :3, 3].to(dtype)  # camera centre in ego
@@ -142,16 +143,19 @@ def lift_features(
     )
 
 
-def _seen_voxels(masks: list[torch.Tensor], sparse: bool) -> list[torch.Tensor]:
-    """Per camera, the [n] indices of the voxels it sees in some sample of the batch (all V
-    voxels when not ``sparse``), from its [B, V] visibility ``masks``."""
-    v, dev = masks[0].shape[1], masks[0].device
-    if not sparse:
-        return [torch.arange(v, device=dev)] * len(masks)
+def _seen_voxels(masks: list[torch.Tensor]) -> list[torch.Tensor]:
+    """Per camera, the [n] indices of the voxels it sees in some sample of the batch, from its
+    [B, V] visibility ``masks``."""
     seen = torch.stack([m.amax(0) > 0 for m in masks])  # [C, V]
     cam, vox = seen.nonzero(as_tuple=True)  # camera-major order
     sizes = torch.bincount(cam, minlength=len(masks)).tolist()
     return list(vox.split(sizes))
+
+
+def _accumulate(total: torch.Tensor, idx: torch.Tensor | None, part: torch.Tensor) -> torch.Tensor:
+    """``total`` [B, D, V] plus ``part`` at voxels ``idx`` [n] ([B, D, n]), or everywhere
+    (``idx`` None, ``part`` [B, D, V]: the dense twin)."""
+    return total + part if idx is None else total.index_add(2, idx, part)
 
 
 def _sample(maps: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
