@@ -109,9 +109,9 @@ _WORLD_MODEL_EVAL_KEYS = ("pseudo_labels", "camera_ckpt", "camera_tokenizer_ckpt
 def evaluate(cfg: DictConfig) -> dict[str, float]:
     """Evaluate checkpoint ``cfg.ckpt`` on the stage's validation set.
 
-    The model is built by the stage from ``cfg.stage`` (the tokenizer and world-model stages
-    take the checkpoint's architecture) and filled strictly from the checkpoint, which must
-    come from the same stage. Rank 0 writes ``eval_metrics.json`` into ``cfg.run_dir``.
+    The model is built by the stage from ``cfg.stage`` (the tokenizer, Img2Occ and world-model
+    stages take the checkpoint's architecture) and filled strictly from the checkpoint, which
+    must come from the same stage. Rank 0 writes ``eval_metrics.json`` into ``cfg.run_dir``.
 
     Returns:
         ``{"val/<metric>": value, ..., "step": checkpoint step}``.

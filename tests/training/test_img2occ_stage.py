@@ -13,7 +13,7 @@ import torch
 from data_converters import ConvertOptions, create_data
 from renderworld.constants import OCC3D_CLASSES
 from renderworld.data import Img2OccDataset, OccSequenceDataset, load_infos, load_occ3d_labels
-from renderworld.training import train
+from renderworld.training import evaluate, train
 from renderworld.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from renderworld.training.stages.img2occ import img2occ_config, load_img2occ
 
@@ -453,3 +453,22 @@ def test_eval_refit_root_without_per_class_drops_the_checkpoints_per_class_reado
         assert metrics[key] == pytest.approx(original["metrics"][key], rel=1e-9), key
     table = (out / "occ3d_metrics.md").read_text()
     assert f"opacity > {record['value']:g} (re-chosen on `{root}`)" in table
+
+
+def test_eval_builds_the_checkpoints_architecture_when_the_config_differs(trained, tmp_path):
+    """A checkpoint evaluated under another ``stage.model`` (here wider heads) evaluates as
+    itself, with a warning naming what differs; one of another grid is an error naming ckpt."""
+    root, infos, run, _ = trained
+    over = [*stage_overrides(root, infos), f"ckpt={run / 'checkpoints' / 'last.pt'}"]
+    same = evaluate(compose_cfg([*over, f"run_dir={tmp_path / 'same'}"], "eval"))
+    with pytest.warns(UserWarning, match=r"trained with stage.model head_channels=32"):
+        other = evaluate(
+            compose_cfg(
+                [*over, "stage.model.head_channels=64", f"run_dir={tmp_path / 'o'}"], "eval"
+            )
+        )
+    for key in ("val/cam/miou", "val/cam/iou", "val/full/iou"):
+        assert other[key] == same[key], key
+    with pytest.raises(ValueError, match=r"ckpt: .* was trained on the 'coarse' grid"):
+        half = ["grid=half" if o == "grid=coarse" else o for o in over]
+        evaluate(compose_cfg([*half, f"run_dir={tmp_path / 'grid'}"], "eval"))

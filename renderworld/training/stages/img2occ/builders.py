@@ -7,6 +7,7 @@ and the pseudo-label export (``export``).
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import Any
 
 import torch
@@ -17,7 +18,7 @@ from renderworld.img2occ import Img2Occ, Img2OccConfig
 from renderworld.training.checkpoint import check_state_dict_keys, load_checkpoint
 from renderworld.training.stages.common import grid_of, infos_dir
 
-__all__ = ["img2occ_config", "img2occ_datasets", "load_img2occ"]
+__all__ = ["checkpoint_architecture", "img2occ_config", "img2occ_datasets", "load_img2occ"]
 
 # Stage-level keys that fill these Img2OccConfig fields (never set them under stage.model).
 _STAGE_FIELDS = ("grid", "input_size", "render_size", "adjacent_frames")
@@ -74,6 +75,44 @@ def img2occ_config(cfg: Any) -> Img2OccConfig:
         )
     except (TypeError, ValueError) as err:
         raise ValueError(f"stage (Img2OccConfig): {err}") from None
+
+
+def checkpoint_architecture(mine: Img2OccConfig, ckpt) -> Img2OccConfig:
+    """The model config to evaluate checkpoint ``ckpt`` with: its stored ``stage.model``, the
+    run's input and render sizes (the data the run reads).
+
+    A warning names the ``stage.model`` values that differ from the run's ``mine``.
+
+    Raises:
+        ValueError: naming ``ckpt`` when it was trained on another grid.
+        CheckpointError: the file is not an img2occ checkpoint.
+    """
+    stored = load_checkpoint(ckpt, expected_stage="img2occ")["config"]
+    theirs = img2occ_config(OmegaConf.create(stored))
+    if theirs.grid != mine.grid:
+        raise ValueError(
+            f"ckpt: {str(ckpt)!r} was trained on the {theirs.grid.name!r} grid "
+            f"{theirs.grid.shape}, the run's is {mine.grid.name!r} {mine.grid.shape} (grid=...)"
+        )
+    theirs = dataclasses.replace(
+        theirs,
+        input_size=mine.input_size,
+        render_size=mine.render_size,
+        adjacent_frames=mine.adjacent_frames,
+    )
+    diff = {
+        f.name: getattr(theirs, f.name)
+        for f in dataclasses.fields(theirs)
+        if getattr(theirs, f.name) != getattr(mine, f.name)
+    }
+    if diff:
+        warnings.warn(
+            f"ckpt: {str(ckpt)!r} was trained with stage.model "
+            + ", ".join(f"{k}={v!r}" for k, v in diff.items())
+            + "; evaluating that architecture",
+            stacklevel=3,
+        )
+    return theirs
 
 
 def img2occ_datasets(cfg: Any, split: str, adjacent_frames: int = 0) -> Dataset:

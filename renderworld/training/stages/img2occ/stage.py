@@ -45,6 +45,7 @@ from renderworld.training.stages.common import (
 )
 from renderworld.training.stages.img2occ.builders import (
     _adjacent,
+    checkpoint_architecture,
     img2occ_config,
     img2occ_datasets,
 )
@@ -107,7 +108,14 @@ class Img2OccStage(ThresholdMixin, Stage):
 
     # ------------------------------------------------------------------ build
     def build_model(self, cfg: Any) -> nn.Module:
-        return Img2Occ(img2occ_config(cfg))
+        """The Img2Occ; when evaluating (``ckpt`` set) its architecture is the checkpoint's
+        (:func:`checkpoint_architecture`), so a run trained with another ``stage.model`` (e.g.
+        ``depth_bins=20``) evaluates as itself."""
+        mine = img2occ_config(cfg)
+        ckpt = cfg.get("ckpt") if cfg.get("task") == "eval" else None
+        if not ckpt or not Path(str(ckpt)).is_file():
+            return Img2Occ(mine)
+        return Img2Occ(checkpoint_architecture(mine, ckpt))
 
     def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:
         img2occ_config(cfg)  # fail on a bad model or threshold config before any data is read
