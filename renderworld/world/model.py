@@ -180,6 +180,7 @@ class WorldModel(nn.Module):
         cache: WorldModelCache | None = None,
         last_only: bool = False,
         *,
+        logits_from: int = 0,
         with_logits: bool = True,
         validate: bool = True,
     ) -> WorldModelOutput:
@@ -199,6 +200,9 @@ class WorldModel(nn.Module):
                 hold one position, [B, 1, K_g, h, w]); displacements still cover every
                 position. The up-path and the code heads feed nothing else, so this skips
                 work, not information (the rollout reads only the last position).
+            logits_from: compute the code logits of positions ``logits_from .. T-1`` only
+                (``logits`` then hold ``T - logits_from`` positions); the same skip for a
+                teacher-forced loss that scores only the later positions. Without a cache.
             with_logits: False skips the up-path and the code heads altogether (``logits`` is
                 then empty): the displacements do not read them (a trajectory-only rollout's
                 last step).
@@ -213,6 +217,11 @@ class WorldModel(nn.Module):
             self._check_inputs(tokens, displacements, command)
         cfg = self.config
         b, t = tokens.shape[:2]
+        if logits_from and (cache is not None or not 0 < logits_from < t):
+            raise ValueError(
+                f"logits_from: expected a position in 1..{t - 1} without a cache, got "
+                f"{logits_from}" + (" with a cache" if cache is not None else "")
+            )
         start = 0
         if cache is not None:
             if not isinstance(cache, WorldModelCache) or not 0 <= cache.frames < t:
@@ -245,8 +254,9 @@ class WorldModel(nn.Module):
             cache.frames = start + t
         logits = []
         if with_logits:
-            if last_only:  # the up-path and the heads feed only the logits
-                x, skips = x[:, -1:], [sk[:, -1:] for sk in skips]
+            first = t - 1 if last_only else logits_from
+            if first:  # the up-path and the heads (per frame) feed only the logits
+                x, skips = x[:, first:], [sk[:, first:] for sk in skips]
             for s in reversed(range(cfg.num_scales - 1)):
                 x = self.up[s](x, skips[s])
             x = self.out_norm(x)

@@ -298,15 +298,21 @@ class PoseWarpWorldModel(nn.Module):
             command: [B] int64.
 
         Returns:
-            G tensors [B, S, K_g, h, w]: index k-1 scores frame t+k.
+            G tensors [B, S, K_g, h, w]: index k-1 scores frame t+k (views of codes-last
+            memory: ``lg.permute(0, 1, 3, 4, 2)`` is contiguous, for a cross-entropy over rows).
         """
         h = self.config.history_frames
         if tokens.dim() != 5 or tokens.shape[1] < h:
             raise ValueError(f"tokens: expected [B, >= {h}, G, h, w], got {tuple(tokens.shape)}")
         disp = torch.diff(sequence_poses[..., :2].float(), dim=1)
-        out = self.net(tokens, disp, command)
+        out = self.net(tokens, disp, command, logits_from=h - 1)  # the history's are unscored
         logits = []
         for g, lg in enumerate(out.logits):
-            bonus = self.copy_bonus[g].to(lg.dtype).expand_as(tokens[:, :, g, None])
-            logits.append(lg.scatter_add(2, tokens[:, :, g, None], bonus)[:, h - 1 :])
+            # The heads write codes last in memory: add the bonus there (a plain copy, not a
+            # transposing one) and hand back the [B, S, K, h, w] view of it.
+            own = tokens[:, h - 1 :, g, :, :, None]
+            bonus = self.copy_bonus[g].to(lg.dtype).expand_as(own)
+            logits.append(
+                lg.permute(0, 1, 3, 4, 2).scatter_add(-1, own, bonus).permute(0, 1, 4, 2, 3)
+            )
         return logits

@@ -30,6 +30,35 @@ def test_last_only_equals_the_full_call_at_the_last_position():
     torch.testing.assert_close(last.displacement, full.displacement)
 
 
+@pytest.mark.parametrize("first", [1, 3, 4])
+def test_logits_from_equal_the_full_call_and_its_gradients(first):
+    """Logits of the later positions only (the pose-warp loss scores the future frames):
+    the full call's values there, and the same gradients for a loss that reads only them."""
+    model, tokens, disp, cmd = model_and_inputs(t=5, seed=2)
+    model.train()
+    full = model(tokens, disp, cmd)
+    part = model(tokens, disp, cmd, logits_from=first)
+    grads = []
+    for logits in ([lg[:, first:] for lg in full.logits], part.logits):
+        model.zero_grad()
+        sum((lg.square().mean() for lg in logits), torch.zeros(())).backward()
+        grads.append({n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None})
+    for lf, lp in zip(full.logits, part.logits):
+        assert lp.shape[1] == 5 - first
+        torch.testing.assert_close(lp, lf[:, first:], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(part.displacement, full.displacement)
+    assert grads[0].keys() == grads[1].keys()
+    for name in grads[0]:
+        torch.testing.assert_close(grads[1][name], grads[0][name], rtol=1e-5, atol=1e-7)
+
+
+def test_logits_from_is_refused_with_a_cache_or_outside_the_window():
+    model, tokens, disp, cmd = model_and_inputs(t=5)
+    for bad, cache in ((5, None), (-1, None), (2, WorldModelCache())):
+        with pytest.raises(ValueError, match=r"logits_from: expected a position in 1\.\.4"):
+            model(tokens, disp, cmd, cache=cache, logits_from=bad)
+
+
 @pytest.mark.parametrize("chunks", [(5, 1, 1, 1), (3, 2, 1, 2), (1, 1, 1, 1, 1, 1, 1, 1)])
 def test_cached_pieces_with_last_only_equal_the_whole_window(chunks):
     model, tokens, disp, cmd = model_and_inputs(t=sum(chunks), seed=1)

@@ -237,3 +237,24 @@ def test_pose_head_with_motion_reads_where_the_others_were():
         model.predict_poses(hist, cmd, occ[:, -1])
     with pytest.raises(ValueError, match=r"motion_frames: expected 0\.\.2"):
         PoseHead(history=3, steps=2, motion_frames=3)
+
+
+def test_pose_warp_model_computes_only_the_scored_positions_as_the_reference_does():
+    """The model's logits (the net's up-path and heads run on the scored positions only) equal
+    the reference: every position computed, the bonus added, the history's positions dropped."""
+    cfg = WorldModelConfig(codebook_sizes=(16, 8), token_grid=(4, 4), embed_dim=16, num_heads=2,
+                           num_scales=2, layers_per_scale=(1, 1), history_frames=3,
+                           future_frames=3)  # fmt: skip
+    torch.manual_seed(0)
+    model = PoseWarpWorldModel(cfg, copy_bonus=2.0).eval()
+    tokens = torch.stack([torch.randint(0, k, (2, 5, 4, 4)) for k in (16, 8)], 2)
+    poses = torch.randn(2, 5, 3)
+    cmd = torch.tensor([0, 2])
+    got = model(tokens, poses, cmd)
+    with torch.no_grad():
+        out = model.net(tokens, torch.diff(poses[..., :2], dim=1), cmd)
+    for g, (lg, mine) in enumerate(zip(out.logits, got)):
+        bonus = model.copy_bonus[g].expand_as(tokens[:, :, g, None])
+        ref = lg.scatter_add(2, tokens[:, :, g, None], bonus)[:, 2:]
+        assert mine.shape == ref.shape == (2, 3, cfg.codebook_sizes[g], 4, 4)
+        torch.testing.assert_close(mine, ref, rtol=1e-5, atol=1e-6)

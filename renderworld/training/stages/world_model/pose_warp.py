@@ -254,8 +254,10 @@ def pose_teacher_forced(
     w = valid.float()
     ces = []
     for g, lg in enumerate(logits):
-        ce = F.cross_entropy(lg.flatten(0, 1), target[:, :, g].flatten(0, 1), reduction="none")
-        ces.append((ce.mean(dim=(-2, -1)).view(b, f) * w).sum() / w.sum().clamp_min(1.0))
+        rows = lg.permute(0, 1, 3, 4, 2)  # [B, S, h, w, K]: codes last, as the model wrote them
+        ce = F.cross_entropy(rows.reshape(-1, rows.shape[-1]), target[:, :, g].reshape(-1),
+                             reduction="none").view(b, f, -1)  # fmt: skip
+        ces.append((ce.mean(dim=-1) * w).sum() / w.sum().clamp_min(1.0))
     token_ce = torch.stack(ces).mean()
     return {
         "loss": token_ce + st.lambda_pose * pl["pose"],
