@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +18,13 @@ from renderworld.metrics.occupancy import (
 )
 from renderworld.training.config import grid_spec_from_config
 
-__all__ = ["infos_dir", "grid_of", "confusion_stats", "occupancy_metrics"]
+__all__ = [
+    "infos_dir",
+    "grid_of",
+    "confusion_stats",
+    "occupancy_metrics",
+    "warn_architecture_differs",
+]
 
 
 def infos_dir(cfg: Any) -> Path:
@@ -74,3 +82,21 @@ def occupancy_metrics(confusion: torch.Tensor, prefix: str) -> dict[str, float]:
     for c, name in enumerate(OCC3D_CLASSES[:-1]):
         out[f"{prefix}iou_{name}"] = float(per_class[c])
     return out
+
+
+def warn_architecture_differs(ckpt: Any, theirs: Any, mine: Any) -> None:
+    """Warn, naming checkpoint ``ckpt`` and each field, where the model config it was trained
+    with (``theirs``, a dataclass) differs from the run's ``stage.model`` (``mine``), before an
+    evaluation builds the checkpoint's architecture."""
+    diff = {
+        f.name: getattr(theirs, f.name)
+        for f in dataclasses.fields(theirs)
+        if getattr(theirs, f.name) != getattr(mine, f.name)
+    }
+    if diff:
+        warnings.warn(
+            f"ckpt: {str(ckpt)!r} was trained with stage.model "
+            + ", ".join(f"{k}={v!r}" for k, v in diff.items())
+            + "; evaluating that architecture",
+            stacklevel=3,
+        )

@@ -9,8 +9,6 @@ the split (and over ranks).
 
 from __future__ import annotations
 
-import warnings
-from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +26,7 @@ from renderworld.training.stages.common import (
     grid_of,
     infos_dir,
     occupancy_metrics,
+    warn_architecture_differs,
 )
 
 __all__ = [
@@ -160,18 +159,7 @@ class TokenizerStage(Stage):
                 f"ckpt: {str(ckpt)!r} was trained on a {theirs.grid_shape} grid, the run's is "
                 f"{mine.grid_shape} (grid=...)"
             )
-        diff = {
-            f.name: getattr(theirs, f.name)
-            for f in fields(theirs)
-            if getattr(theirs, f.name) != getattr(mine, f.name)
-        }
-        if diff:
-            warnings.warn(
-                f"ckpt: {str(ckpt)!r} was trained with stage.model "
-                + ", ".join(f"{k}={v!r}" for k, v in diff.items())
-                + "; evaluating that architecture",
-                stacklevel=2,
-            )
+        warn_architecture_differs(ckpt, theirs, mine)
         return build_tokenizer(theirs)
 
     def build_datasets(self, cfg: Any) -> tuple[Dataset, Dataset | None]:

@@ -7,7 +7,6 @@ and the pseudo-label export (``export``).
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from typing import Any
 
 import torch
@@ -16,7 +15,7 @@ from torch.utils.data import Dataset
 
 from renderworld.img2occ import Img2Occ, Img2OccConfig
 from renderworld.training.checkpoint import check_state_dict_keys, load_checkpoint
-from renderworld.training.stages.common import grid_of, infos_dir
+from renderworld.training.stages.common import grid_of, infos_dir, warn_architecture_differs
 
 __all__ = ["checkpoint_architecture", "img2occ_config", "img2occ_datasets", "load_img2occ"]
 
@@ -100,18 +99,7 @@ def checkpoint_architecture(mine: Img2OccConfig, ckpt) -> Img2OccConfig:
         render_size=mine.render_size,
         adjacent_frames=mine.adjacent_frames,
     )
-    diff = {
-        f.name: getattr(theirs, f.name)
-        for f in dataclasses.fields(theirs)
-        if getattr(theirs, f.name) != getattr(mine, f.name)
-    }
-    if diff:
-        warnings.warn(
-            f"ckpt: {str(ckpt)!r} was trained with stage.model "
-            + ", ".join(f"{k}={v!r}" for k, v in diff.items())
-            + "; evaluating that architecture",
-            stacklevel=3,
-        )
+    warn_architecture_differs(ckpt, theirs, mine)
     return theirs
 
 
