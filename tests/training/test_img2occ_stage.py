@@ -16,6 +16,7 @@ from renderworld.data import Img2OccDataset, OccSequenceDataset, load_infos, loa
 from renderworld.training import evaluate, train
 from renderworld.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from renderworld.training.stages.img2occ import img2occ_config, load_img2occ
+from renderworld.training.stages.img2occ.builders import checkpoint_architecture
 
 from .conftest import PYTHON, REPO, compose_cfg, subprocess_env
 
@@ -472,3 +473,14 @@ def test_eval_builds_the_checkpoints_architecture_when_the_config_differs(traine
     with pytest.raises(ValueError, match=r"ckpt: .* was trained on the 'coarse' grid"):
         half = ["grid=half" if o == "grid=coarse" else o for o in over]
         evaluate(compose_cfg([*half, f"run_dir={tmp_path / 'grid'}"], "eval"))
+
+
+def test_eval_keeps_the_runs_readout_options_with_the_checkpoints_architecture(trained):
+    """Only the weights' shape comes from the checkpoint: a readout option the run sets (here
+    the mirrored readout) is what the evaluation runs."""
+    root, infos, run, _ = trained
+    cfg = compose_cfg([*stage_overrides(root, infos), "stage.model.head_channels=64",
+                       "stage.model.mirror_readout=true"])  # fmt: skip
+    with pytest.warns(UserWarning, match=r"head_channels=32; evaluating"):
+        got = checkpoint_architecture(img2occ_config(cfg), run / "checkpoints" / "last.pt")
+    assert got.head_channels == 32 and got.mirror_readout is True

@@ -21,6 +21,9 @@ __all__ = ["checkpoint_architecture", "img2occ_config", "img2occ_datasets", "loa
 
 # Stage-level keys that fill these Img2OccConfig fields (never set them under stage.model).
 _STAGE_FIELDS = ("grid", "input_size", "render_size", "adjacent_frames")
+# Options of how a trained model is run, not of its weights: an evaluation keeps the run's
+# (e.g. ``mirror_readout=false`` scores the same weights without the mirrored readout).
+_RUN_FIELDS = ("mirror_readout", "lift_sparse", "render_backend", "prune_opacity")
 
 
 def _size(cfg: Any, key: str) -> tuple[int, int]:
@@ -78,7 +81,8 @@ def img2occ_config(cfg: Any) -> Img2OccConfig:
 
 def checkpoint_architecture(mine: Img2OccConfig, ckpt) -> Img2OccConfig:
     """The model config to evaluate checkpoint ``ckpt`` with: its stored ``stage.model``, the
-    run's input and render sizes (the data the run reads).
+    run's input and render sizes (the data the run reads) and the run's options of how the
+    model runs (``_RUN_FIELDS``: the readout, the lifting's and the rasterizer's paths).
 
     A warning names the ``stage.model`` values that differ from the run's ``mine``.
 
@@ -93,12 +97,8 @@ def checkpoint_architecture(mine: Img2OccConfig, ckpt) -> Img2OccConfig:
             f"ckpt: {str(ckpt)!r} was trained on the {theirs.grid.name!r} grid "
             f"{theirs.grid.shape}, the run's is {mine.grid.name!r} {mine.grid.shape} (grid=...)"
         )
-    theirs = dataclasses.replace(
-        theirs,
-        input_size=mine.input_size,
-        render_size=mine.render_size,
-        adjacent_frames=mine.adjacent_frames,
-    )
+    kept = ("input_size", "render_size", "adjacent_frames", *_RUN_FIELDS)
+    theirs = dataclasses.replace(theirs, **{k: getattr(mine, k) for k in kept})
     warn_architecture_differs(ckpt, theirs, mine)
     return theirs
 
