@@ -23,6 +23,7 @@ __all__ = [
     "grid_of",
     "confusion_stats",
     "occupancy_metrics",
+    "evaluated_checkpoint",
     "warn_architecture_differs",
 ]
 
@@ -82,6 +83,13 @@ def occupancy_metrics(confusion: torch.Tensor, prefix: str) -> dict[str, float]:
     for c, name in enumerate(OCC3D_CLASSES[:-1]):
         out[f"{prefix}iou_{name}"] = float(per_class[c])
     return out
+
+
+def evaluated_checkpoint(cfg: Any) -> str | None:
+    """The checkpoint an evaluation run (``task: eval``) scores, when ``ckpt`` names a file;
+    else None (training, or no such file yet: the caller builds the run's own model)."""
+    ckpt = cfg.get("ckpt") if cfg.get("task") == "eval" else None
+    return str(ckpt) if ckpt and Path(str(ckpt)).is_file() else None
 
 
 def warn_architecture_differs(ckpt: Any, theirs: Any, mine: Any) -> None:

@@ -9,7 +9,6 @@ the split (and over ranks).
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -23,6 +22,7 @@ from renderworld.training.checkpoint import load_checkpoint
 from renderworld.training.registry import Stage, register_stage
 from renderworld.training.stages.common import (
     confusion_stats,
+    evaluated_checkpoint,
     grid_of,
     infos_dir,
     occupancy_metrics,
@@ -149,8 +149,8 @@ class TokenizerStage(Stage):
             ValueError: naming ``ckpt`` when the checkpoint's grid is not the run's.
         """
         mine = tokenizer_config(cfg)
-        ckpt = cfg.get("ckpt") if cfg.get("task") == "eval" else None
-        if not ckpt or not Path(str(ckpt)).is_file():
+        ckpt = evaluated_checkpoint(cfg)
+        if ckpt is None:
             return build_tokenizer(mine)
         stored = load_checkpoint(ckpt, expected_stage="tokenizer")["config"]
         theirs = tokenizer_config(OmegaConf.create(stored))

@@ -41,6 +41,7 @@ from renderworld.precision import autocast_off, exact_float32
 from renderworld.training.registry import Stage, register_stage
 from renderworld.training.stages.common import (
     confusion_stats,
+    evaluated_checkpoint,
     occupancy_metrics,
 )
 from renderworld.training.stages.img2occ.builders import (
@@ -112,8 +113,8 @@ class Img2OccStage(ThresholdMixin, Stage):
         (:func:`checkpoint_architecture`), so a run trained with another ``stage.model`` (e.g.
         ``depth_bins=20``) evaluates as itself."""
         mine = img2occ_config(cfg)
-        ckpt = cfg.get("ckpt") if cfg.get("task") == "eval" else None
-        if not ckpt or not Path(str(ckpt)).is_file():
+        ckpt = evaluated_checkpoint(cfg)
+        if ckpt is None:
             return Img2Occ(mine)
         return Img2Occ(checkpoint_architecture(mine, ckpt))
 

@@ -11,13 +11,13 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable
 from dataclasses import fields
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from omegaconf import OmegaConf
 from torch import nn
 
 from renderworld.training.checkpoint import CheckpointError, load_checkpoint
+from renderworld.training.stages.common import evaluated_checkpoint
 from renderworld.training.stages.world_model.settings import (
     EvalSetting,
     build_world_model,
@@ -67,8 +67,8 @@ class CheckpointModels:
         error (they define the evaluation protocol and the model's window).
         """
         mine = world_model_config(cfg, self.tokenizer.cfg)
-        ckpt = cfg.get("ckpt") if cfg.get("task") == "eval" else None
-        if not ckpt or not Path(str(ckpt)).is_file():
+        ckpt = evaluated_checkpoint(cfg)
+        if ckpt is None:
             return build_world_model(self.forecaster, mine, cfg)
         stored = load_checkpoint(ckpt, expected_stage="world_model")["config"]
         self.forecaster = forecaster_of(OmegaConf.create(stored))
