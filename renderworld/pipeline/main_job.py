@@ -57,6 +57,7 @@ def _train_and_eval(
     extra: tuple[str, ...],
     ckpt: str = REPORTED_CHECKPOINT,
     evaluate: bool = True,
+    cores: int | None = None,
 ) -> list[Step]:
     """A training step (resumable from its ``last.pt``) and the step evaluating its checkpoint.
 
@@ -72,6 +73,7 @@ def _train_and_eval(
         ckpt: the checkpoint file evaluated (``last.pt``: ``best.pt`` is chosen on the split
             the evaluation reports, see ``REPORTED_CHECKPOINT``).
         evaluate: False: the training step only (another step evaluates its checkpoint).
+        cores: the training step's ``Step.cores`` (1: it runs beside another one-core step).
     """
     py, run = sys.executable, out / name
     base = (f"experiment={experiment}", *args)
@@ -85,6 +87,7 @@ def _train_and_eval(
             inputs=inputs,
             resume_args=("resume=true",),
             resume_marker=run / "checkpoints" / "last.pt",
+            cores=cores,
         )
     ]
     if not evaluate:
@@ -132,6 +135,15 @@ class _Paths:
     def configs(self, stage: str, experiment: str) -> tuple[Path, ...]:
         conf = self.repo / "configs"
         return (conf / "stage" / f"{stage}.yaml", conf / "experiment" / f"{experiment}.yaml")
+
+    @property
+    def beside(self) -> tuple[dict, tuple[str, ...]]:
+        """``Step.cores`` and the thread override of the two trainings that run side by side
+        (Img2Occ and the 3D-Occ world model): on a CPU (mini family) one thread each, as two
+        one-thread steps keep two cores busier than either on two threads; none on a GPU."""
+        if self.family != "mini":
+            return {}, ()
+        return {"cores": 1}, ("trainer.num_threads=1",)
 
     def ckpt(self, step: str) -> Path:
         # Every checkpoint a later step reads (evaluations, the next stage's training, the
@@ -221,7 +233,8 @@ def _occupancy_steps(p: _Paths) -> list[Step]:
         ("train Img2Occ (semantic Gaussians) from LiDAR-projected 2-D labels",
          "evaluate 3-D occupancy on the val split (Occ3D protocol, camera mask)"),  # fmt: skip
         i2o_exp, p.common, p.out, ("infos",),
-        (*p.code("img2occ", "splat"), *p.configs("img2occ", i2o_exp)), p.extra,
+        (*p.code("img2occ", "splat"), *p.configs("img2occ", i2o_exp)),
+        (*p.extra, *p.beside[1]), **p.beside[0],
     )  # fmt: skip
     pseudo = p.out / "pseudo_labels"
     steps.append(
@@ -260,7 +273,7 @@ def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step
         ("train the world model on GT occupancy tokens (3D-Occ setting)"
          + (" and the scenario library" if scen else ""), ""),
         wm_exp, (*p.common, *tok), p.out, ("tokenizer", *((LIBRARY_INFOS,) if scen else ())),
-        wm_inputs, (*library, *p.extra), evaluate=False,
+        wm_inputs, (*library, *p.extra, *p.beside[1]), evaluate=False, **p.beside[0],
     )  # fmt: skip
     # Camera setting (paper): its own tokenizer, trained on the pseudo labels; the
     # world_model_eval step scores it in the Camera rows (camera_tokenizer_ckpt).

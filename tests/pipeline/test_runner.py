@@ -97,12 +97,24 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
             assert any(str(ckpt) in " ".join(e.command) for e in evals), s.name
     for required in ("fixtures", "infos", "tokenizer", "img2occ", "pseudo_labels"):
         assert required in names
-    # Only the simulations and conversions share the machine; trainings and evaluations run alone.
+    # The simulations and conversions share the machine, then Img2Occ and the 3D-Occ world
+    # model train side by side on one thread each; every other step runs alone.
+    data = {"fixtures", "infos", "scenario_data", "scenario_infos", "interaction_data",
+            "interaction_infos"}  # fmt: skip
+    pair = {"img2occ", "world_model"}
     shared = {s.name for s in steps if s.cores is not None}
-    assert shared == {"fixtures", "infos", "scenario_data", "scenario_infos",
-                      "interaction_data", "interaction_infos"}  # fmt: skip
+    assert shared == data | pair
     assert all(s.cores == 1 for s in steps if s.name in shared)
-    assert max(names.index(n) for n in shared) < names.index("tokenizer")
+    assert max(names.index(n) for n in data) < names.index("tokenizer")
+    for n in pair:
+        assert "trainer.num_threads=1" in steps[names.index(n)].command, n
+    # Nothing that could wait for the whole machine stands between the pair in list order (the
+    # scheduler never lets a step pass one waiting for cores): each step there waits for one
+    # of the pair, so the second one starts beside the first.
+    first, second = sorted(names.index(n) for n in pair)
+    for s in steps[first + 1 : second]:
+        assert set(s.depends_on) & pair, s.name
+    assert set(steps[second].depends_on) <= set(names[:first]), "the pair's inputs come first"
     # One world-model evaluation after both trainings: one table with both settings.
     wm = steps[names.index("world_model_eval")]
     assert names.index("world_model_eval") > names.index("world_model_camera")
