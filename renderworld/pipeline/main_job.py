@@ -138,9 +138,10 @@ class _Paths:
 
     @property
     def beside(self) -> tuple[dict, tuple[str, ...]]:
-        """``Step.cores`` and the thread override of the two trainings that run side by side
-        (Img2Occ and the 3D-Occ world model): on a CPU (mini family) one thread each, as two
-        one-thread steps keep two cores busier than either on two threads; none on a GPU."""
+        """``Step.cores`` and the thread override of the steps that run beside Img2Occ (the
+        3D-Occ world model, then its interaction-split evaluation): on a CPU (mini family) one
+        thread each, as two one-thread steps keep two cores busier than either on two threads;
+        none on a GPU."""
         if self.family != "mini":
             return {}, ()
         return {"cores": 1}, ("trainer.num_threads=1",)
@@ -275,6 +276,12 @@ def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step
         wm_exp, (*p.common, *tok), p.out, ("tokenizer", *((LIBRARY_INFOS,) if scen else ())),
         wm_inputs, (*library, *p.extra, *p.beside[1]), evaluate=False, **p.beside[0],
     )  # fmt: skip
+    if scen:
+        # Next in line, so that it uses the core the world model frees while Img2Occ trains.
+        tok_wm = (p.ckpt("tokenizer"), p.ckpt("world_model"))
+        steps.append(
+            interaction_eval_step(scen, wm_exp, *tok_wm, p.out, p.beside[1], **p.beside[0])
+        )
     # Camera setting (paper): its own tokenizer, trained on the pseudo labels; the
     # world_model_eval step scores it in the Camera rows (camera_tokenizer_ckpt).
     cam_tok = p.ckpt("tokenizer_camera")
@@ -329,9 +336,6 @@ def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step
         )
     )
     if scen:
-        steps.append(
-            interaction_eval_step(scen, wm_exp, p.ckpt("tokenizer"), p.ckpt("world_model"), p.out)
-        )
         camera = (p.out / "planner_camera" / PLANNER_BUNDLE, p.ckpt("img2occ"))
         steps.append(closed_loop_step(p.out / "planner" / PLANNER_BUNDLE, p.out, p.repo, camera))
     return steps

@@ -121,9 +121,16 @@ def scenario_steps(data: ScenarioData, repo: Path) -> list[Step]:
 
 
 def interaction_eval_step(
-    data: ScenarioData, experiment: str, tokenizer_ckpt: Path, ckpt: Path, out: Path
+    data: ScenarioData,
+    experiment: str,
+    tokenizer_ckpt: Path,
+    ckpt: Path,
+    out: Path,
+    extra: tuple[str, ...] = (),
+    cores: int | None = None,
 ) -> Step:
-    """Score the world model (and the baselines) on the interaction split."""
+    """Score the world model (and the baselines) on the interaction split; ``extra``
+    overrides and ``cores`` as for a training step (``main_job``)."""
     run = out / "world_model_interactions"
     return Step(
         "world_model_interactions",
@@ -137,9 +144,11 @@ def interaction_eval_step(
             f"stage.tokenizer_ckpt={tokenizer_ckpt}",
             f"ckpt={ckpt}",
             f"run_dir={run}",
+            *extra,
         ),  # fmt: skip
         run,
         depends_on=("world_model", INTERACTION_INFOS),
+        cores=cores,
     )
 
 

@@ -97,17 +97,28 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
             assert any(str(ckpt) in " ".join(e.command) for e in evals), s.name
     for required in ("fixtures", "infos", "tokenizer", "img2occ", "pseudo_labels"):
         assert required in names
-    # The simulations and conversions share the machine, then Img2Occ and the 3D-Occ world
-    # model train side by side on one thread each; every other step runs alone.
+    # The simulations and conversions share the machine, then Img2Occ trains on one thread
+    # beside the 3D-Occ world model and its interaction-split evaluation; the rest runs alone.
     data = {"fixtures", "infos", "scenario_data", "scenario_infos", "interaction_data",
             "interaction_infos"}  # fmt: skip
     pair = {"img2occ", "world_model"}
     shared = {s.name for s in steps if s.cores is not None}
-    assert shared == data | pair
+    assert shared == data | pair | {"world_model_interactions"}
     assert all(s.cores == 1 for s in steps if s.name in shared)
     assert max(names.index(n) for n in data) < names.index("tokenizer")
-    for n in pair:
+    for n in (*pair, "world_model_interactions"):
         assert "trainer.num_threads=1" in steps[names.index(n)].command, n
+    # After the world model, its evaluation starts on the freed core while Img2Occ trains:
+    # every step listed between them waits for Img2Occ.
+    by_name = {s.name: s for s in steps}
+
+    def upstream(name: str) -> set[str]:
+        deps = set(by_name[name].depends_on)
+        return deps.union(*(upstream(d) for d in deps)) if deps else deps
+
+    wm = names.index("world_model")
+    for s in steps[wm + 1 : names.index("world_model_interactions")]:
+        assert "img2occ" in upstream(s.name), s.name
     # Nothing that could wait for the whole machine stands between the pair in list order (the
     # scheduler never lets a step pass one waiting for cores): each step there waits for one
     # of the pair, so the second one starts beside the first.
