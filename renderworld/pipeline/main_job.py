@@ -137,14 +137,21 @@ class _Paths:
         return (conf / "stage" / f"{stage}.yaml", conf / "experiment" / f"{experiment}.yaml")
 
     @property
-    def beside(self) -> tuple[dict, tuple[str, ...]]:
-        """``Step.cores`` and the thread override of the steps that run beside Img2Occ (the
-        3D-Occ world model, then its interaction-split evaluation): on a CPU (mini family) one
-        thread each, as two one-thread steps keep two cores busier than either on two threads;
-        none on a GPU."""
-        if self.family != "mini":
-            return {}, ()
-        return {"cores": 1}, ("trainer.num_threads=1",)
+    def one_core(self) -> bool:
+        """Img2Occ runs beside the 3D-Occ world model, then its interaction-split evaluation,
+        each a one-core step on one thread: on a CPU (mini family) two one-thread steps keep
+        two cores busier than either on two threads; on a GPU (paper) each runs alone."""
+        return self.family == "mini"
+
+    @property
+    def one_thread(self) -> tuple[str, ...]:
+        """The thread override of the one-core steps (none on a GPU)."""
+        return ("trainer.num_threads=1",) if self.one_core else ()
+
+    @property
+    def side_cores(self) -> int | None:
+        """``Step.cores`` of the one-core steps (None: the whole machine)."""
+        return 1 if self.one_core else None
 
     def ckpt(self, step: str) -> Path:
         # Every checkpoint a later step reads (evaluations, the next stage's training, the
@@ -235,7 +242,7 @@ def _occupancy_steps(p: _Paths) -> list[Step]:
          "evaluate 3-D occupancy on the val split (Occ3D protocol, camera mask)"),  # fmt: skip
         i2o_exp, p.common, p.out, ("infos",),
         (*p.code("img2occ", "splat"), *p.configs("img2occ", i2o_exp)),
-        (*p.extra, *p.beside[1]), **p.beside[0],
+        (*p.extra, *p.one_thread), cores=p.side_cores,
     )  # fmt: skip
     pseudo = p.out / "pseudo_labels"
     steps.append(
@@ -274,13 +281,13 @@ def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step
         ("train the world model on GT occupancy tokens (3D-Occ setting)"
          + (" and the scenario library" if scen else ""), ""),
         wm_exp, (*p.common, *tok), p.out, ("tokenizer", *((LIBRARY_INFOS,) if scen else ())),
-        wm_inputs, (*library, *p.extra, *p.beside[1]), evaluate=False, **p.beside[0],
+        wm_inputs, (*library, *p.extra, *p.one_thread), evaluate=False, cores=p.side_cores,
     )  # fmt: skip
     if scen:
         # Next in line, so that it uses the core the world model frees while Img2Occ trains.
         tok_wm = (p.ckpt("tokenizer"), p.ckpt("world_model"))
         steps.append(
-            interaction_eval_step(scen, wm_exp, *tok_wm, p.out, p.beside[1], **p.beside[0])
+            interaction_eval_step(scen, wm_exp, *tok_wm, p.out, p.one_thread, p.side_cores)
         )
     # Camera setting (paper): its own tokenizer, trained on the pseudo labels; the
     # world_model_eval step scores it in the Camera rows (camera_tokenizer_ckpt).

@@ -119,6 +119,11 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
     wm = names.index("world_model")
     for s in steps[wm + 1 : names.index("world_model_interactions")]:
         assert "img2occ" in upstream(s.name), s.name
+    # On a GPU (the paper family) every training has the machine to itself, threads untouched.
+    cfg.experiments = "paper"
+    gpu = main_job_steps(cfg, repo)
+    assert {s.name for s in gpu if s.cores is not None} <= data
+    assert not any("trainer.num_threads=1" in s.command for s in gpu)
     # Nothing that could wait for the whole machine stands between the pair in list order (the
     # scheduler never lets a step pass one waiting for cores): each step there waits for one
     # of the pair, so the second one starts beside the first.
