@@ -1,7 +1,7 @@
 """Closed-loop driving in the simulator (Hydra entry point; configs/drive.yaml).
 
     python tools/drive.py [preset=interactions] [planner=PATH/planner.pt]
-        [camera_planner=PATH/planner.pt img2occ=PATH/last.pt]
+        [true_movers=true] [camera_planner=PATH/planner.pt img2occ=PATH/last.pt]
         [planners=[log_replay,cv,ctr,rule_based,stop]] [grid=coarse] [out=outputs/drive]
         [record=scene-6000]
 
@@ -47,7 +47,8 @@ def drive(cfg: DictConfig) -> dict:
     names = [str(n) for n in cfg.planners]
     planners = [make_planner(n) for n in names]
     if cfg.get("planner"):
-        planners += make_bundle_planners(str(cfg.planner), grid=grid)
+        true_movers = bool(cfg.get("true_movers", False))
+        planners += make_bundle_planners(str(cfg.planner), grid=grid, true_movers=true_movers)
     if cfg.get("camera_planner"):
         planners.append(camera_planner(cfg, grid))
     if cfg.get("threads"):

@@ -175,7 +175,9 @@ def _closed_loop_section(out: Path) -> list[tuple[str, str]]:
         "trajectories, and the episode ends at the scene's end, an at-fault collision or leaving "
         "the road. PDMS = NC x DAC x (5 TTC + 5 EP + 2 C) / 12 with NAVSIM's rules. world_model "
         "drives its plan checked against its own forecast, world_model_raw its plan as is, "
-        "world_model_camera the Camera setting's checked plan on Img2Occ's occupancy of its "
+        "world_model_true_movers its plan checked against the true future movers (privileged: "
+        "what a perfect mover forecast would give), world_model_camera the Camera setting's "
+        "checked plan on Img2Occ's occupancy of its "
         "rendered cameras. Privileged planners read the log or the true agent boxes: references, "
         "not competitors.\n\n"
     )

@@ -172,7 +172,7 @@ def closed_loop_step(
     return Step(
         CLOSED_LOOP,
         "drive the interaction split in closed loop: log replay, CV, CTR, rule-based, stop, the "
-        "world model (checked and raw plans)"
+        "world model (checked and raw plans, and checked against the true movers)"
         + (", the Camera setting on its cameras" if camera else ""),  # fmt: skip
         (
             sys.executable,
@@ -180,6 +180,7 @@ def closed_loop_step(
             "preset=interactions",
             "planners=[log_replay,cv,ctr,rule_based,stop]",
             f"planner={bundle}",
+            "true_movers=true",
             *cams,
             f"out={out / CLOSED_LOOP}",
             *record,

@@ -237,6 +237,7 @@ class Planner:
         check: bool = False,
         cruise: list[float] | None = None,
         previous: list | None = None,
+        movers=None,
     ) -> list[PlanResult]:
         """Plan with the pose-warp model from raw history frames (shared by :meth:`plan_batch`
         and :class:`renderworld.planning.PlannerSession`; inputs are assumed validated).
@@ -252,6 +253,8 @@ class Planner:
                 history's fastest step).
             previous: B previous trajectories carried on to now ([S, 2] or None), for the
                 check (:func:`renderworld.planning.checked.check_plan`).
+            movers: the check's :data:`~renderworld.planning.scene.MoverForecaster` (None: the
+                model's own, :func:`~renderworld.planning.scene.model_forecaster`).
         """
         b = occ.shape[0]
         s = self.config.future_frames
@@ -274,7 +277,8 @@ class Planner:
             if check:
                 h_np, p_np = hist.double().cpu().numpy(), poses.double().cpu().numpy()
                 o_np = occ.cpu().numpy()
-                movers = model_forecaster(self.world_model)
+                if movers is None:
+                    movers = model_forecaster(self.world_model)
                 cruise = [None] * b if cruise is None else cruise
                 previous = [None] * b if previous is None else previous
                 checks = [check_plan(o_np[i], h_np[i], p_np[i], self.grid, self.check_config,

@@ -119,6 +119,7 @@ class PlannerSession:
         forecast: bool = True,
         ego_yaws=None,
         check: bool = False,
+        movers=None,
     ) -> PlanResult:
         """Plan from the last ``history_frames`` pushed frames.
 
@@ -138,6 +139,9 @@ class PlannerSession:
                 when the previous checked plan was made one frame before, its path is carried
                 on to now and the new candidates start on it
                 (:func:`renderworld.planning.checked.blend_with_previous`).
+            movers: the mover forecast the check reads instead of the model's (a
+                :data:`~renderworld.planning.scene.MoverForecaster`; None: the model's). A
+                privileged one measures how much of the checked plan's score the forecast costs.
 
         Returns:
             :class:`PlanResult`; ``timings["encode"]`` is the encode time of the pushes since
@@ -159,6 +163,8 @@ class PlannerSession:
             raise TypeError(f"forecast: expected a bool, got {forecast!r}")
         if not isinstance(check, bool):
             raise TypeError(f"check: expected a bool, got {check!r}")
+        if movers is not None and not check:
+            raise ValueError("movers: only the check reads a mover forecast; pass check=True")
         if self.planner.kind == "pose_warp":
             if ego_yaws is None:
                 raise ValueError(
@@ -175,7 +181,7 @@ class PlannerSession:
             previous = self._carried_previous(disp, yaws) if check else None
             plan = self.planner._plan_frames
             result = plan(frames, disp[None], yaws[None], [command], forecast, check,
-                          [self._cruise], [previous])[0]  # fmt: skip
+                          [self._cruise], [previous], movers)[0]  # fmt: skip
             if check:
                 self._previous = (self.frames_seen, np.asarray(result.trajectory, np.float64))
             return result

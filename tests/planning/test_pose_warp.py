@@ -458,6 +458,24 @@ def test_checked_plan_through_the_api_and_the_session(forecast):
     np.testing.assert_array_equal(streamed.trajectory, checked.trajectory)
 
 
+def test_the_session_checks_against_the_mover_forecast_it_is_given():
+    planner = make_planner()
+    occ, disp, yaws = scene(H)
+    seen = []
+
+    def movers(tracks, current, history_poses, grid, steps, dt):
+        seen.append(len(tracks))
+        return np.zeros((len(tracks), steps + 1, 2))
+
+    session = PlannerSession(planner)
+    for frame in occ:
+        session.push(frame)
+    session.plan(disp, "left", forecast=False, ego_yaws=yaws, check=True, movers=movers)
+    assert len(seen) == 1 and seen[0] >= 1  # read once, with the scene's movers
+    with pytest.raises(ValueError, match="movers: only the check reads"):
+        session.plan(disp, "left", forecast=False, ego_yaws=yaws, movers=movers)
+
+
 def test_a_token_planner_refuses_to_check():
     from tests.planning.test_api import make_planner as token_planner
     from tests.planning.test_api import make_request

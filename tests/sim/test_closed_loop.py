@@ -17,6 +17,7 @@ from renderworld.sim.closed_loop import (
     KinematicLimits,
     OccupancyRenderer,
     SceneBoxes,
+    make_bundle_planners,
     make_planner,
     route_command,
     run_closed_loop,
@@ -247,3 +248,40 @@ def test_progress_counts_only_along_the_route():
     off = along.copy()
     off[11:, 1] = 6.0  # leaves the route after 10 m: nothing more counts
     assert route_progress(path, off) == pytest.approx(10.0)
+
+
+def test_true_movers_row_checks_against_the_scenes_real_future(tmp_path):
+    from renderworld.sim.closed_loop.oracle import MATCH_M, true_mover_forecaster
+    from renderworld.world.tracks import MoverTrack
+
+    world = _world(0)  # lead_brake: the lead car slows down
+    boxes = SceneBoxes(world)
+    t, pose = 2.0, (5.0, -1.0, 0.3)
+    lead = int(np.flatnonzero(boxes.moving)[0])
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    rot = np.array([[c, s], [-s, c]])  # scene -> ego
+    centre = rot @ (boxes.at(t)[0][lead] - pose[:2])
+    cells = np.zeros(COARSE.shape[:2], bool)
+
+    def track(xy):
+        xy = np.asarray(xy, np.float64)
+        return MoverTrack(1, cells, xy, np.zeros(1), xy[None], np.zeros(2), False)
+
+    far = centre + (MATCH_M + 5.0, 0.0)  # no object near it: the fallback's forecast
+    fallback = lambda tr, *a: np.full((len(tr), 7, 2), 9.0)  # noqa: E731
+    disp = true_mover_forecaster(boxes, t, pose, fallback)(
+        [track(centre + 0.5), track(far)], None, None, COARSE, 6, KEYFRAME_DT
+    )
+    truth = np.stack([rot @ (boxes.at(t + 0.5 * k)[0][lead] - boxes.at(t)[0][lead])
+                      for k in range(7)])  # fmt: skip
+    np.testing.assert_allclose(disp[0], truth, atol=1e-9)
+    assert np.linalg.norm(truth[-1]) > 1.0  # it moves
+    assert (disp[1] == 9.0).all()
+
+    rows = make_bundle_planners(_bundle(tmp_path / "planner.pt"), true_movers=True)
+    assert [p.name for p in rows] == ["world_model", "world_model_raw", "world_model_true_movers"]
+    run = run_closed_loop([world], rows, progress=False)
+    assert run.planners["world_model_true_movers"]["privileged"]
+    assert not run.planners["world_model"]["privileged"]
+    with pytest.raises(ValueError, match="true_movers needs check=True"):
+        BundlePlanner(rows[0].planner, check=False, true_movers=True)

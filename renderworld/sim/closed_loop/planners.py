@@ -244,6 +244,9 @@ class BundlePlanner:
             :class:`~renderworld.sim.closed_loop.observe.OccupancyRenderer` interface (e.g. the
             cameras and Img2Occ: :class:`~renderworld.sim.closed_loop.cameras.CameraObserver`);
             None: the world's occupancy rendered at the ego's pose.
+        true_movers: check against the scene's true future movers instead of the model's
+            forecast (:mod:`renderworld.sim.closed_loop.oracle`): privileged, a headroom
+            reference.
     """
 
     privileged = False
@@ -255,6 +258,7 @@ class BundlePlanner:
         grid: GridSpec | None = None,
         check: bool = True,
         observer=None,
+        true_movers: bool = False,
     ):
         from renderworld.planning import Planner, PlannerSession
 
@@ -273,6 +277,11 @@ class BundlePlanner:
         self.planner = planner
         self.check = bool(check)
         self.observer = observer
+        if true_movers and not check:
+            raise ValueError(f"planner {name}: true_movers needs check=True")
+        self.true_movers = bool(true_movers)
+        self.privileged = self.true_movers
+        self._boxes = None
         self.grid = planner.grid
         self._session = PlannerSession(planner)
         self._pushed = -1
@@ -280,6 +289,7 @@ class BundlePlanner:
     def reset(self, world: World) -> None:
         self._session.reset()
         self._pushed = -1
+        self._boxes = SceneBoxes(world) if self.true_movers else None
 
     def plan(self, obs: Observation) -> np.ndarray:
         frames = obs.occupancy
@@ -288,9 +298,16 @@ class BundlePlanner:
             if first + i > self._pushed:
                 self._session.push(occ)
                 self._pushed = first + i
+        movers = None
+        if self.true_movers:
+            from renderworld.planning.scene import model_forecaster
+            from renderworld.sim.closed_loop.oracle import true_mover_forecaster
+
+            fallback = model_forecaster(self.planner.world_model)
+            movers = true_mover_forecaster(self._boxes, obs.t, obs.pose, fallback)
         result = self._session.plan(
             obs.displacements, obs.command, forecast=False, ego_yaws=np.asarray(obs.yaws),
-            check=self.check,
+            check=self.check, movers=movers,
         )  # fmt: skip
         return np.asarray(result.trajectory, dtype=np.float64)
 
@@ -305,10 +322,12 @@ REFERENCE_PLANNERS = {
 
 
 def make_bundle_planners(
-    path, grid: GridSpec | None = None, name: str = "world_model"
+    path, grid: GridSpec | None = None, name: str = "world_model", true_movers: bool = False
 ) -> list[BundlePlanner]:
     """The rows of a planner bundle: ``<name>`` (the checked plan) and ``<name>_raw`` (the
-    model's own plan), sharing one loaded bundle.
+    model's own plan), sharing one loaded bundle; with ``true_movers`` also
+    ``<name>_true_movers`` (the checked plan against the scene's true future movers:
+    privileged, the headroom of a better mover forecast).
 
     Raises:
         ValueError: naming ``planner`` when the path is not a ``*.pt`` file.
@@ -321,10 +340,13 @@ def make_bundle_planners(
     if path.suffix != ".pt":
         raise ValueError(f"planner: expected a planner bundle path (*.pt), got {str(path)!r}")
     bundle = load_planner(path)
-    return [
+    rows = [
         BundlePlanner(bundle, name=name, grid=grid, check=True),
         BundlePlanner(bundle, name=f"{name}_raw", grid=grid, check=False),
     ]
+    if true_movers:
+        rows.append(BundlePlanner(bundle, f"{name}_true_movers", grid, True, true_movers=True))
+    return rows
 
 
 def make_planner(name: str, grid: GridSpec | None = None):
