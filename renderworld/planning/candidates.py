@@ -25,7 +25,7 @@ origin, heading 0, at its current speed.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -54,6 +54,8 @@ class CheckConfig:
         idm_min_accel: IDM's braking is clipped here, m/s^2 (negative).
         corridor_margin_m: corridor half-width beyond the ego's, metres.
         ramp_m: path length over which a lateral offset is reached, metres (at least).
+        ramp_s: ... and at least the distance the ego covers in this many seconds at its
+            current speed (a fast car changes lane over a longer path).
         extend_m: straight extension of the path beyond the plan's last waypoint, metres.
         box_margin_m: the ego box is widened by this much on each side for collisions, metres.
         vulnerable_margin_m: and by this much more for pedestrians, cyclists, motorcyclists.
@@ -77,6 +79,8 @@ class CheckConfig:
             no heading rate to go on with).
         path_spacing_m: the path keeps only plan points at least this far apart, metres: a slow
             plan's centimetre wiggles would otherwise turn the car back and forth.
+        steady_path: also propose the IDM runs and brakes along the ego's steady path (its
+            heading and turn rate now), for when the learned path turns where the car cannot.
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -89,6 +93,7 @@ class CheckConfig:
     idm_min_accel: float = -8.0
     corridor_margin_m: float = 0.3
     ramp_m: float = 12.0
+    ramp_s: float = 0.0
     extend_m: float = 60.0
     box_margin_m: float = 0.2
     vulnerable_margin_m: float = 1.0
@@ -103,6 +108,7 @@ class CheckConfig:
     continuous_start: bool = True
     continuous_min_speed: float = 0.5
     path_spacing_m: float = 1.0
+    steady_path: bool = True
 
 
 class PlanPath:
@@ -349,6 +355,8 @@ def make_candidates(
     """
     plan = np.asarray(plan, dtype=np.float64)
     steps = plan.shape[0]
+    if cfg.ramp_s * speed > cfg.ramp_m:
+        cfg = replace(cfg, ramp_m=cfg.ramp_s * speed)
     path = PlanPath(np.concatenate([np.zeros((1, 2)), plan]), cfg.extend_m,
                     float(np.asarray(plan_yaws)[-1]), spacing_m=cfg.path_spacing_m)  # fmt: skip
     step_speed = np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), plan]), axis=0).T) / dt

@@ -6,8 +6,10 @@ the world model's own plan:
 1. **Forecast scene** (:func:`renderworld.planning.scene.forecast_scene`): the movers of the
    current frame tracked through the history and moved by the model's mover forecast, the
    static scenery and the drivable cells, in the current ego frame;
-2. **Candidates** (:func:`renderworld.planning.candidates.make_candidates`) around the plan,
-   each starting with the ego's lateral acceleration now (:func:`continue_lateral_accel`);
+2. **Candidates** (:func:`renderworld.planning.candidates.make_candidates`) around the plan
+   and, with ``CheckConfig.steady_path``, IDM runs and brakes along the ego's steady path
+   (:func:`steady_path_plan`), each starting with the ego's lateral acceleration now
+   (:func:`continue_lateral_accel`);
 3. **Scores** (:func:`renderworld.planning.check.score_candidates`): each candidate tracked by
    the kinematic model and scored against the forecast scene.
 
@@ -20,12 +22,12 @@ It reads what the request carries and nothing else: the history occupancy, the h
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from renderworld.constants import KEYFRAME_DT, GridSpec
-from renderworld.planning.candidates import CheckConfig, make_candidates
+from renderworld.planning.candidates import Candidates, CheckConfig, make_candidates
 from renderworld.planning.check import CandidateScores, score_candidates
 from renderworld.planning.kinematics import KinematicLimits
 from renderworld.planning.scene import (
@@ -42,6 +44,7 @@ __all__ = [
     "current_speed",
     "lateral_accel_now",
     "past_states",
+    "steady_path_plan",
 ]
 
 
@@ -149,6 +152,50 @@ def continue_lateral_accel(waypoints: np.ndarray, accel: float, dt: float = KEYF
     return wp
 
 
+def steady_path_plan(plan: np.ndarray, past: np.ndarray, dt: float = KEYFRAME_DT) -> np.ndarray:
+    """[S, 3] (x, y, yaw) waypoints at the plan's top speed along the ego's steady path: its
+    heading now, turning at its current curvature (yaw rate / speed over the last 0.2 s;
+    straight below 2 m/s, where the heading rate is noise; at most 0.05 /m).
+
+    A fallback path that needs no learned plan: where the plan turns towards an obstacle or
+    sideways at a crawl, the car can still go on along the way it is heading.
+
+    Args:
+        plan: [S, >= 2] the learned plan's positions, metres, current ego frame.
+        past: [n, 4] the ego's recent 10 Hz states (x, y, yaw, speed), the last one now
+            (:func:`past_states`).
+        dt: seconds between waypoints.
+    """
+    step = np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), plan[:, :2]]), axis=0).T)
+    top = float(step.max()) if len(step) else 0.0
+    v = float(past[-1, 3])
+    kappa = 0.0
+    if v > 2.0 and len(past) >= 3:
+        kappa = float(np.clip((past[-1, 2] - past[-3, 2]) / 0.2 / v, -0.05, 0.05))
+    s = top * np.arange(1, len(plan) + 1)
+    yaw = kappa * s
+    if abs(kappa) < 1e-9:
+        xy = np.column_stack([s, np.zeros_like(s)])
+    else:
+        xy = np.column_stack([np.sin(yaw) / kappa, (1 - np.cos(yaw)) / kappa])
+    return np.column_stack([xy, yaw])
+
+
+def _with_steady_path(cands, plan, past, speed, scene, cfg, dt, cruise_speed):
+    """``cands`` and, after them, the IDM runs and brakes along :func:`steady_path_plan`."""
+    steady = steady_path_plan(plan, past, dt)
+    extra = make_candidates(steady[:, :2], steady[:, 2], speed, scene,
+                            replace(cfg, offsets_m=(0.0,)), dt, cruise_speed)  # fmt: skip
+    keep = np.array([k != "plan" for k in extra.kind])
+    return Candidates(
+        np.concatenate([cands.waypoints, extra.waypoints[keep]]),
+        list(cands.kind) + [f"steady_{k}" for k, m in zip(extra.kind, keep) if m],
+        np.concatenate([cands.offset_m, extra.offset_m[keep]]),
+        np.concatenate([cands.speed, extra.speed[keep]]),
+        cands.reference_m,
+    )
+
+
 def current_speed(history_poses: np.ndarray, dt: float = KEYFRAME_DT) -> float:
     """The ego's speed now (m/s): :func:`past_states`' last speed."""
     return float(past_states(history_poses, dt, seconds=0.0)[-1, 3])
@@ -206,6 +253,8 @@ def check_plan(
     if cruise_speed is None:
         cruise_speed = float(np.hypot(*np.diff(hist[:, :2], axis=0).T).max() / dt)
     cands = make_candidates(plan[:, :2], plan[:, 2], speed, scene, cfg, dt, cruise_speed)
+    if cfg.steady_path:
+        cands = _with_steady_path(cands, plan, past, speed, scene, cfg, dt, cruise_speed)
     if cfg.continuous_start and speed > cfg.continuous_min_speed:
         step = int(round(dt / 0.1))
         accel = lateral_accel_now(hist, float(past[-1 - step, 3]), dt) if len(past) > step else 0.0

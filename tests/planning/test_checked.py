@@ -253,3 +253,35 @@ def test_a_slow_plan_wiggling_sideways_gives_a_straight_path():
         return bool(((step <= 1e-9).all(1) | (step >= -1e-9).all(1)).all())
 
     assert one_way(CheckConfig()) and not one_way(CheckConfig(path_spacing_m=0.0))
+
+
+def test_a_plan_turning_off_the_road_gives_way_to_the_steady_path():
+    occ, poses = history(road_half_width=3.0)
+    t = np.arange(1, 7) * DT
+    swerve = np.stack([V * t, 1.5 * t * t, np.zeros(6)], 1)  # 13.5 m to the left at 3 s
+    swerve[:, 2] = np.arctan2(np.gradient(swerve[:, 1]), np.gradient(swerve[:, 0]))
+    out = check_plan(occ, poses, swerve, GRID)
+    c = out.candidates
+    assert c.kind[c.best].startswith("steady_") and c.DAC[c.best] == 1 and c.EP[c.best] > 0.95
+    assert np.abs(out.trajectory[:, 1]).max() < 0.5  # on along the road, at speed
+    assert out.trajectory[-1, 0] > 25.0
+    alone = check_plan(occ, poses, swerve, GRID, CheckConfig(steady_path=False)).candidates
+    assert not any(k.startswith("steady_") for k in alone.kind)
+    assert alone.score.max() < c.score[c.best]
+
+
+def test_the_steady_path_goes_on_at_the_turn_rate_now():
+    from renderworld.planning.checked import steady_path_plan
+
+    plan = straight_plan()  # top speed 10 m/s
+    omega = 0.2  # rad/s, turning left
+    ts = np.round(np.arange(-1.0, 1e-9, 0.1), 9)
+    past = np.stack([V * ts, np.zeros_like(ts), omega * ts, np.full_like(ts, V)], 1)
+    out = steady_path_plan(plan, past)
+    radius = V / omega  # 50 m: curvature 0.02 /m
+    np.testing.assert_allclose(np.hypot(out[:, 0], out[:, 1] - radius), radius, atol=1e-9)
+    arc = radius * out[:, 2]
+    np.testing.assert_allclose(arc, V * np.arange(1, 7) * DT, atol=1e-9)  # the plan's speed
+    slow = past.copy()
+    slow[:, 3] = 1.0  # below 2 m/s the heading rate is noise: straight ahead
+    np.testing.assert_allclose(steady_path_plan(plan, slow)[:, 1:], 0.0, atol=1e-12)
