@@ -340,6 +340,7 @@ def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step
             evaluate,
             p.out / "world_model_eval",
             depends_on=("world_model", "tokenizer_camera", "world_model_camera", "pseudo_labels"),
+            inputs=p.code("planning"),  # its checked-plan rows
         )
     )
     if scen:

@@ -148,6 +148,7 @@ def interaction_eval_step(
         ),  # fmt: skip
         run,
         depends_on=("world_model", INTERACTION_INFOS),
+        inputs=(Path(__file__).resolve().parents[1] / "planning",),  # its checked-plan rows
         cores=cores,
     )
 

@@ -28,7 +28,9 @@ The best candidate has the highest score less ``offset_cost`` per metre of later
 ``change_cost`` per metre of mean distance from the previous plan (an offset or a change has to
 buy safety or progress: no weaving or dithering between equal candidates), the earlier one in
 candidate order on ties (the learned plan itself comes first). When every score is 0 the
-candidate that stays on the drivable area and meets an obstacle latest (never, best) is chosen.
+candidate that stays on the drivable area and meets an obstacle latest (never, best) is chosen,
+then the one with the least lateral offset, then the one driving least: the hardest brake in
+its lane (a swerve into the next lane makes a contact the ego's fault).
 """
 
 from __future__ import annotations
@@ -241,9 +243,11 @@ def score_candidates(
             cost = cost + cfg.change_cost * change
         choice = score - cost
         best = int(np.argmax(choice))
-    else:  # every candidate collides or leaves the road: on the road, latest contact, progress
+    else:  # every candidate collides or leaves the road: on the road, latest contact, in its
+        # lane, then the hardest brake (a swerve into the next lane is a contact at fault)
         choice = score
-        order = np.lexsort((-ep, -np.minimum(first, 1e6), -dac.astype(float)))
+        order = np.lexsort((progress, np.abs(cands.offset_m), -np.minimum(first, 1e6),
+                            -dac.astype(float)))  # fmt: skip
         best = int(order[0])
     return CandidateScores(
         kind=list(cands.kind), offset_m=cands.offset_m, speed=cands.speed, waypoints=wp,

@@ -285,3 +285,12 @@ def test_the_steady_path_goes_on_at_the_turn_rate_now():
     slow = past.copy()
     slow[:, 3] = 1.0  # below 2 m/s the heading rate is noise: straight ahead
     np.testing.assert_allclose(steady_path_plan(plan, slow)[:, 1:], 0.0, atol=1e-12)
+
+
+def test_when_every_candidate_collides_the_hardest_brake_in_lane_wins():
+    wall = (CAR, lambda t: (7.0, -8.0), (1, 10))  # a row of cars across the road, 7 m ahead
+    occ, poses = history([wall], road_half_width=8.0)
+    c = check_plan(occ, poses, straight_plan(), GRID).candidates
+    assert (c.NC == 0).all()  # nothing stops in time
+    assert c.offset_m[c.best] == 0.0 and c.kind[c.best].endswith("brake")
+    assert c.progress_m[c.best] == c.progress_m[c.offset_m == 0.0].min()
