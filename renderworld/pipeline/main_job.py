@@ -21,6 +21,7 @@ from renderworld.pipeline.scenario_steps import (
     closed_loop_step,
     interaction_eval_step,
     scenario_steps,
+    simulator_code,
 )
 
 __all__ = ["EXPERIMENTS", "EXPORT_DEVICE", "PLANNER_BUNDLE", "main_job_steps", "run_main_job"]
@@ -219,7 +220,7 @@ def _data_steps(cfg: Any, p: _Paths) -> list[Step]:
                 "overwrite=true",
             ),  # fmt: skip
             p.data,
-            inputs=(*p.code("sim"), conf / "sim"),
+            inputs=(*simulator_code(p.repo), conf / "sim"),
             cores=1,  # one simulation thread (and its file writer): others run beside it
         ),
         convert,

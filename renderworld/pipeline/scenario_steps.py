@@ -72,10 +72,17 @@ class ScenarioData:
         )
 
 
+def simulator_code(repo: Path) -> tuple[Path, ...]:
+    """The simulator's code a fixture depends on: ``renderworld/sim`` without the closed loop
+    (driving planners through scenes changes no simulated data)."""
+    sim = repo / "renderworld" / "sim"
+    return tuple(sorted(q for q in sim.iterdir() if q.name not in ("closed_loop", "__pycache__")))
+
+
 def scenario_steps(data: ScenarioData, repo: Path) -> list[Step]:
     """Simulate (occupancy only) and convert (infos, no 2-D labels) both scenario datasets."""
     py, conf = sys.executable, repo / "configs"
-    sim_inputs = (repo / "renderworld" / "sim", conf / "sim")
+    sim_inputs = (*simulator_code(repo), conf / "sim")
     steps = []
     for name, preset, root, version, infos_name, what in (
         ("scenario_data", "scenarios", data.library, data.library_version, LIBRARY_INFOS,

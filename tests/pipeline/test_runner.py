@@ -261,3 +261,38 @@ def test_no_main_job_step_reads_a_checkpoint_chosen_on_the_reported_split(
     assert all(v.startswith(str(tmp_path / "out")) for _, v in read), read
     assert all(v.endswith("/checkpoints/last.pt") for _, v in read), read
     assert all(v.endswith("/checkpoints/last.pt") for v in JOB_CHECKPOINTS.values())
+
+
+def test_closed_loop_code_leaves_the_simulated_data_up_to_date(tmp_path):
+    """Changing the closed loop (planners, scores) re-drives the scenes but re-simulates and
+    retrains nothing; changing the simulator re-simulates every dataset."""
+    import shutil
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from renderworld.pipeline.main_job import main_job_steps
+    from renderworld.pipeline.runner import fingerprint_paths
+
+    real = Path(__file__).resolve().parents[2]
+    repo = tmp_path / "repo"
+    shutil.copytree(
+        real / "renderworld", repo / "renderworld", ignore=shutil.ignore_patterns("__pycache__")
+    )
+    shutil.copytree(real / "configs", repo / "configs")
+    cfg = OmegaConf.load(repo / "configs" / "pipeline.yaml")
+    cfg.out, cfg.data_root = str(tmp_path / "out"), str(tmp_path / "data")
+
+    def prints():
+        return {s.name: fingerprint_paths(s.inputs) for s in main_job_steps(cfg, repo)}
+
+    before = prints()
+    with open(repo / "renderworld" / "sim" / "closed_loop" / "planners.py", "a") as f:
+        f.write("\n# changed\n")
+    after = prints()
+    changed = {n for n in before if before[n] != after[n]}
+    assert changed == {"closed_loop"}
+    with open(repo / "renderworld" / "sim" / "scene.py", "a") as f:
+        f.write("\n# changed\n")
+    resimulated = {n for n, v in prints().items() if v != after[n]}
+    assert {"fixtures", "scenario_data", "interaction_data", "closed_loop"} <= resimulated
