@@ -1,7 +1,8 @@
 """Closed-loop driving in the simulator (Hydra entry point; configs/drive.yaml).
 
     python tools/drive.py [preset=interactions] [planner=PATH/planner.pt]
-        [true_movers=true] [camera_planner=PATH/planner.pt img2occ=PATH/last.pt]
+        [true_movers=true] [check={KNOB: VALUE}] [behaviours=interactions] [max_scenes=50]
+        [camera_planner=PATH/planner.pt img2occ=PATH/last.pt]
         [planners=[log_replay,cv,ctr,rule_based,stop]] [grid=coarse] [out=outputs/drive]
         [record=scene-6000]
 
@@ -48,7 +49,10 @@ def drive(cfg: DictConfig) -> dict:
     planners = [make_planner(n) for n in names]
     if cfg.get("planner"):
         true_movers = bool(cfg.get("true_movers", False))
-        planners += make_bundle_planners(str(cfg.planner), grid=grid, true_movers=true_movers)
+        rows = make_bundle_planners(str(cfg.planner), grid=grid, true_movers=true_movers)
+        if cfg.get("check"):
+            rows[0].planner.check_config = check_config(cfg.check)
+        planners += rows
     if cfg.get("camera_planner"):
         planners.append(camera_planner(cfg, grid))
     if cfg.get("threads"):
@@ -56,7 +60,7 @@ def drive(cfg: DictConfig) -> dict:
 
         torch.set_num_threads(int(cfg.threads))
     t_build = time.perf_counter()
-    worlds = build_worlds(sim)
+    worlds = select_worlds(build_worlds(sim), cfg.get("behaviours"), cfg.get("max_scenes"))
     build_s = time.perf_counter() - t_build
     run = run_closed_loop(worlds, planners, progress=bool(cfg.progress))
     check = self_check(run)
@@ -89,6 +93,46 @@ def drive(cfg: DictConfig) -> dict:
         print("self-check (log replay perfect on every scene): " + ("passed" if not check else
               "FAILED:\n  " + "\n  ".join(check)))  # fmt: skip
     return {"paths": paths, "self_check": check, "run": run}
+
+
+def select_worlds(worlds: list, behaviours=None, max_scenes=None) -> list:
+    """The scenes of the listed behaviours (``"interactions"``: the five interaction ones), in
+    preset order, at most ``max_scenes`` of them (None: all).
+
+    Raises:
+        ValueError: naming ``behaviours`` for a behaviour no scene of the preset has.
+    """
+    from renderworld.sim.scene import INTERACTIONS
+
+    if behaviours:
+        names = list(INTERACTIONS) if behaviours == "interactions" else [str(b) for b in behaviours]
+        known = {w.spec.behaviour for w in worlds}
+        unknown = sorted(set(names) - known)
+        if unknown:
+            raise ValueError(f"behaviours: {unknown} not in this preset's {sorted(known)}")
+        worlds = [w for w in worlds if w.spec.behaviour in set(names)]
+    return worlds if max_scenes is None else worlds[: int(max_scenes)]
+
+
+def check_config(overrides):
+    """A :class:`~renderworld.planning.CheckConfig` with ``overrides`` ({knob: value}).
+
+    Raises:
+        ValueError: naming ``check.<knob>`` for a knob the config does not have.
+    """
+    from dataclasses import fields, replace
+
+    from omegaconf import OmegaConf
+
+    from renderworld.planning import CheckConfig
+
+    over = OmegaConf.to_container(overrides) if not isinstance(overrides, dict) else overrides
+    names = {f.name for f in fields(CheckConfig)}
+    for key in over:
+        if key not in names:
+            raise ValueError(f"check.{key}: CheckConfig has no such knob (one of {sorted(names)})")
+    over = {k: tuple(v) if isinstance(v, list) else v for k, v in over.items()}
+    return replace(CheckConfig(), **over)
 
 
 def camera_planner(cfg: DictConfig, grid):

@@ -30,6 +30,7 @@ from renderworld.sim.closed_loop.boxes import EGO_HALF, first_contact
 from renderworld.sim.closed_loop.observe import pose_matrix_2d
 from renderworld.sim.layout import EGO_CENTRE_OFFSET
 from renderworld.sim.occupancy import SemanticVoxeliser
+from renderworld.sim.scene import INTERACTIONS
 from renderworld.world import WorldModelConfig
 from renderworld.world.ego import command_from_trajectory
 from renderworld.world.pose import PoseWarpWorldModel
@@ -285,3 +286,21 @@ def test_true_movers_row_checks_against_the_scenes_real_future(tmp_path):
     assert not run.planners["world_model"]["privileged"]
     with pytest.raises(ValueError, match="true_movers needs check=True"):
         BundlePlanner(rows[0].planner, check=False, true_movers=True)
+
+
+def test_drive_tool_selects_planner_dev_scenes_and_checker_knobs():
+    from tools.drive import check_config, select_worlds
+
+    worlds = build_worlds(config_from_preset("scenarios", num_scenes=24))
+    dev = select_worlds(worlds, "interactions", 5)
+    assert len(dev) == 5 and all(w.spec.behaviour in INTERACTIONS for w in dev)
+    first = [w.name for w in worlds if w.spec.behaviour in INTERACTIONS][:5]
+    assert [w.name for w in dev] == first  # preset order
+    cut_ins = sum(w.spec.behaviour == "cut_in" for w in worlds)
+    assert len(select_worlds(worlds, ["cut_in"])) == cut_ins > 0
+    with pytest.raises(ValueError, match="behaviours: \\['flying'\\]"):
+        select_worlds(worlds, ["cut_in", "flying"])
+    cfg = check_config(OmegaConf.create({"headway": 1.0, "offsets_m": [0.0, 1.0]}))
+    assert cfg.headway == 1.0 and cfg.offsets_m == (0.0, 1.0) and cfg.steady_path
+    with pytest.raises(ValueError, match="check.head_way: CheckConfig has no such knob"):
+        check_config({"head_way": 1.0})
