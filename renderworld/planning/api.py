@@ -253,8 +253,7 @@ class Planner:
                 history's fastest step).
             previous: B previous trajectories carried on to now ([S, 2] or None), for the
                 check (:func:`renderworld.planning.checked.check_plan`).
-            movers: the check's :data:`~renderworld.planning.scene.MoverForecaster` (None: the
-                model's own, :func:`~renderworld.planning.scene.model_forecaster`).
+            movers: the check's mover forecast (None: the model's own, ``model_forecaster``).
         """
         b = occ.shape[0]
         s = self.config.future_frames
@@ -276,11 +275,8 @@ class Planner:
             checks = [None] * b
             if check:
                 h_np, p_np = hist.double().cpu().numpy(), poses.double().cpu().numpy()
-                o_np = occ.cpu().numpy()
-                if movers is None:
-                    movers = model_forecaster(self.world_model)
-                cruise = [None] * b if cruise is None else cruise
-                previous = [None] * b if previous is None else previous
+                o_np, movers = occ.cpu().numpy(), movers or model_forecaster(self.world_model)
+                cruise, previous = cruise or [None] * b, previous or [None] * b
                 checks = [check_plan(o_np[i], h_np[i], p_np[i], self.grid, self.check_config,
                                      movers=movers, cruise_speed=cruise[i],
                                      previous=previous[i]) for i in range(b)]  # fmt: skip
