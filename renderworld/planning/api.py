@@ -274,8 +274,8 @@ class Planner:
                 ms = {k: ms[k] + more[k] for k in ms}
             checks = [None] * b
             if check:
-                h_np, p_np = hist.double().cpu().numpy(), poses.double().cpu().numpy()
-                o_np, movers = occ.cpu().numpy(), movers or model_forecaster(self.world_model)
+                h_np, p_np, o_np = (t.cpu().numpy() for t in (hist.double(), poses.double(), occ))
+                movers = model_forecaster(self.world_model) if movers is None else movers
                 cruise, previous = cruise or [None] * b, previous or [None] * b
                 checks = [check_plan(o_np[i], h_np[i], p_np[i], self.grid, self.check_config,
                                      movers=movers, cruise_speed=cruise[i],
