@@ -5,6 +5,12 @@ A mover is a movable bird's-eye-view component of the current frame
 track follows it back through every history frame, each brought into the current ego frame by
 its pose, so the ego's own motion is compensated:
 
+* **Merged movers split** (oldest frame first): at coarse voxels two cars side by side (a lead
+  car and an oncoming one in the next lane) touch and form one component, which would then
+  follow one car's history and carry both cells with it. Where one component covers the
+  footprints of two or more movers of the frame before (each carried on by its velocity from
+  the two frames before) whose velocities differ by at least :data:`SPLIT_SPEED_MPS`, its
+  cells go to the nearest footprint.
 * **Matching** (newest frame first): a track's next older position is predicted from its
   velocity so far (none yet: where it was last seen); the nearest component of the same class
   within the gate ``GATE_M + max_speed * gap`` of that prediction (``gap`` seconds since the
@@ -31,12 +37,15 @@ import numpy as np
 from renderworld.constants import KEYFRAME_DT, GridSpec
 from renderworld.world.movers import MAX_SPEED_MPS, bev_components
 
-__all__ = ["GATE_M", "GATE_SPEED_MPS", "MoverTrack", "track_movers"]
+__all__ = ["GATE_M", "GATE_SPEED_MPS", "SPLIT_SPEED_MPS", "MoverTrack", "track_movers"]
 
 #: Slack of the matching gate, metres (a centroid's quantisation at coarse voxels).
 GATE_M = 1.0
 #: Speed change a track may show between frames once its velocity is known, m/s.
 GATE_SPEED_MPS = 4.0
+#: Two movers of a frame that one component of the next frame covers are split apart again when
+#: their velocities differ by at least this much, m/s (a car passing one in the next lane).
+SPLIT_SPEED_MPS = 3.0
 
 
 @dataclass
@@ -68,6 +77,69 @@ def _to_current(comps: list, pose: np.ndarray) -> list[np.ndarray]:
     return [rot @ c + (x, y) for _, _, c in comps]
 
 
+def _cell_xy(cells: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """[K, 2] centres (metres, the frame's own ego frame) of the ``cells`` [X, Y] set."""
+    ix, iy = np.nonzero(cells)
+    return np.stack([grid.range_min[0] + (ix + 0.5) * grid.voxel_size[0],
+                     grid.range_min[1] + (iy + 0.5) * grid.voxel_size[1]], 1)  # fmt: skip
+
+
+def _split_frame(comps: list, pose, feet: list, vel: np.ndarray, cls: np.ndarray,
+                 grid: GridSpec, split_speed: float) -> list:  # fmt: skip
+    """Components of one frame, each covering two or more differently moving movers of the
+    frame before split among them: each cell goes to the nearest mover's footprint ``feet``
+    (cell centres [K, 2], current ego frame) carried on by its velocity ``vel`` [M, 2]."""
+    x, y, yaw = (float(v) for v in pose)
+    rot = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    reach = GATE_M + float(grid.voxel_size[0])
+    out = []
+    for c_cls, cells, c in comps:
+        own = _cell_xy(cells, grid)
+        xy = own @ rot.T + (x, y)  # current ego frame
+        d = np.stack([np.hypot(*(xy[:, None] - f[None]).transpose(2, 0, 1)).min(1)
+                      for f in feet]) if feet else np.zeros((0, len(xy)))  # fmt: skip
+        near = np.flatnonzero((cls == c_cls) & (d.min(1, initial=np.inf) <= reach))
+        v = vel[near]
+        spread = np.hypot(*(v[:, None] - v[None]).transpose(2, 0, 1)).max() if len(v) else 0.0
+        if len(near) < 2 or spread < split_speed:
+            out.append((c_cls, cells, c))
+            continue
+        owner = near[np.argmin(d[near], axis=0)]
+        ix, iy = np.nonzero(cells)
+        for m in np.unique(owner):
+            part = np.zeros_like(cells)
+            part[ix[owner == m], iy[owner == m]] = True
+            out.append((c_cls, part, own[owner == m].mean(0)))
+    return out
+
+
+def _split_merged(frames: list, poses: np.ndarray, grid: GridSpec, dt: float,
+                  split_speed: float) -> list:  # fmt: skip
+    """Oldest frame first: a frame's components split where they cover movers of the frame
+    before that move apart (velocities from the two frames before, nearest match)."""
+    out = list(frames[:2])
+    for k in range(2, len(frames)):
+        prev, older = out[k - 1], out[k - 2]
+        if not prev or not older:
+            out.append(frames[k])
+            continue
+        c1 = np.stack(_to_current(prev, poses[k - 1]))
+        c2 = np.stack(_to_current(older, poses[k - 2]))
+        cls1, cls2 = np.array([p[0] for p in prev]), np.array([p[0] for p in older])
+        d = np.hypot(*(c1[:, None] - c2[None]).transpose(2, 0, 1))  # [M1, M2]
+        d = np.where(cls1[:, None] == cls2[None], d, np.inf)
+        j = d.argmin(1)
+        gate = GATE_M + np.array([MAX_SPEED_MPS[c] for c in cls1]) * dt
+        ok = np.flatnonzero(d[np.arange(len(prev)), j] <= gate)
+        vel = (c1[ok] - c2[j[ok]]) / dt
+        xk, yk, yawk = (float(v) for v in poses[k - 1])
+        rot = np.array([[np.cos(yawk), -np.sin(yawk)], [np.sin(yawk), np.cos(yawk)]])
+        feet = [_cell_xy(prev[m][1], grid) @ rot.T + (xk, yk) + vel[i] * dt
+                for i, m in enumerate(ok)]  # fmt: skip
+        out.append(_split_frame(frames[k], poses[k], feet, vel, cls1[ok], grid, split_speed))
+    return out
+
+
 def _fit(times: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Least-squares slope [2] (m/s) of positions [K, 2] over times [K] (zeros for K < 2)."""
     if len(times) < 2:
@@ -82,6 +154,7 @@ def track_movers(
     grid: GridSpec,
     dt: float = KEYFRAME_DT,
     min_shift_voxels: float = 1.0,
+    split_speed_mps: float | None = SPLIT_SPEED_MPS,
 ) -> list[MoverTrack]:
     """Track every mover of the current frame back through the history (module docstring).
 
@@ -93,6 +166,8 @@ def track_movers(
         dt: seconds between frames.
         min_shift_voxels: a track moves when its fitted displacement over its span is at least
             this many x-voxels.
+        split_speed_mps: split merged components (module docstring) apart when the movers
+            they cover differ in velocity by this much (m/s); None: never.
 
     Returns:
         One :class:`MoverTrack` per movable component of the current frame, in
@@ -110,12 +185,15 @@ def track_movers(
     t_n = occ.shape[0]
     if poses.shape != (t_n, 3):
         raise ValueError(f"history_poses: expected [{t_n}, 3], got {poses.shape}")
-    current = bev_components(occ[-1], grid)
+    frames = [bev_components(occ[k], grid) for k in range(t_n)]
+    if split_speed_mps is not None:
+        frames = _split_merged(frames, poses, grid, dt, split_speed_mps)
+    current = frames[-1]
     cur_cls = np.array([cls for cls, _, _ in current])
     seen_t = [[0.0] for _ in current]
     seen_c = [[c] for _, _, c in current]
     for k in range(t_n - 2, -1, -1):
-        past = bev_components(occ[k], grid)
+        past = frames[k]
         if not past or not current:
             continue
         past_c = np.stack(_to_current(past, poses[k]))  # [M, 2]

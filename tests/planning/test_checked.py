@@ -294,3 +294,18 @@ def test_when_every_candidate_collides_the_hardest_brake_in_lane_wins():
     assert (c.NC == 0).all()  # nothing stops in time
     assert c.offset_m[c.best] == 0.0 and c.kind[c.best].endswith("brake")
     assert c.progress_m[c.best] == c.progress_m[c.offset_m == 0.0].min()
+
+
+def test_a_lead_car_met_by_an_oncoming_one_keeps_its_own_motion():
+    # On the coarse grid the two cars' cells touch once they are side by side: one component.
+    lead = (CAR, lambda t: (8.0 + 9.0 * t, -0.8), (3, 2))  # ahead in the ego's lane, 9 m/s
+    oncoming = (CAR, lambda t: (10.0 - 7.0 * t, 1.6), (3, 2))  # the next lane, towards the ego
+    occ, poses = history([lead, oncoming])
+    from renderworld.world.tracks import track_movers
+
+    merged = [tr for tr in track_movers(occ, poses, GRID, split_speed_mps=None) if tr.moving]
+    assert len(merged) == 1  # one blob, matched to one of the two histories
+    tracks = sorted((tr for tr in track_movers(occ, poses, GRID) if tr.moving),
+                    key=lambda tr: tr.velocity[0])  # fmt: skip
+    assert [float(tr.velocity[0]) for tr in tracks] == pytest.approx([-7.0, 9.0], abs=1.0)
+    assert tracks[1].centroid[1] < 0.5 < tracks[0].centroid[1]  # each keeps its own lane's cells

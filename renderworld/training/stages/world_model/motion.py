@@ -73,9 +73,9 @@ def empty_motion_stats(steps: int, device, prefix: str = "") -> dict[str, torch.
 
 def _object_cv(occ: np.ndarray, poses: np.ndarray, tracks: list[MoverTrack], grid: GridSpec,
                steps: int) -> np.ndarray:  # fmt: skip
-    """[N, S, 2] displacements of the object-CV rule for the tracks (same components)."""
+    """[N, S, 2] displacements of the object-CV rule for the tracks (their components)."""
     h = occ.shape[0]
-    comps = bev_components(occ[-1], grid)
+    comps = [(tr.cls, tr.cells, tr.centroid) for tr in tracks]
     past = bev_components(occ[h - 1 - _LAG], grid)
     vel = object_velocities(comps, past, poses[h - 1 - _LAG], _LAG * KEYFRAME_DT, grid)
     t = np.arange(1, steps + 1) * KEYFRAME_DT
