@@ -1,6 +1,7 @@
 """Closed-loop driving (renderworld.sim.closed_loop, tools/drive.py) on the interaction preset."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -304,3 +305,18 @@ def test_drive_tool_selects_planner_dev_scenes_and_checker_knobs():
     assert cfg.headway == 1.0 and cfg.offsets_m == (0.0, 1.0) and cfg.steady_path
     with pytest.raises(ValueError, match="check.head_way: CheckConfig has no such knob"):
         check_config({"head_way": 1.0})
+
+
+def test_drive_command_line_sets_checker_knobs():
+    """``tools/drive.py check={KNOB: VALUE}``, as the docs give it, reaches the checked plan."""
+    from hydra import compose, initialize_config_dir
+
+    from tools.drive import check_config
+
+    configs = str(Path(__file__).resolve().parents[2] / "configs")
+    with initialize_config_dir(config_dir=configs, version_base="1.3"):
+        cfg = compose("drive", overrides=["check={headway: 1.0, steady_path: false}"])
+        plain = compose("drive")
+    knobs = check_config(cfg.check)
+    assert knobs.headway == 1.0 and not knobs.steady_path and knobs.a_max == 1.5
+    assert not plain.check  # no knobs: the bundle's own checked plan
