@@ -81,6 +81,9 @@ class CheckConfig:
             plan's centimetre wiggles would otherwise turn the car back and forth.
         steady_path: also propose the IDM runs and brakes along the ego's steady path (its
             heading and turn rate now), for when the learned path turns where the car cannot.
+        comfort_prefixes_s: comfort is also judged on the window that starts now cut after
+            each of these many seconds, which reads the jerk of a short brake
+            (:func:`renderworld.planning.check.comfort_excess`).
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -109,6 +112,7 @@ class CheckConfig:
     continuous_min_speed: float = 0.5
     path_spacing_m: float = 1.0
     steady_path: bool = True
+    comfort_prefixes_s: tuple[float, ...] = (1.0, 1.5, 2.0, 2.5)
 
 
 class PlanPath:

@@ -102,7 +102,12 @@ class CandidateScores:
         ]  # fmt: skip
 
 
-def comfort_excess(states: np.ndarray, past: np.ndarray, stride: int = COMFORT_STRIDE):
+def comfort_excess(
+    states: np.ndarray,
+    past: np.ndarray,
+    stride: int = COMFORT_STRIDE,
+    prefixes_s: tuple[float, ...] = (),
+) -> np.ndarray:
     """[N] how far each candidate's worst comfort quantity goes, as a fraction of its NAVSIM
     bound (:mod:`renderworld.planning.comfort`): below 1 is comfortable.
 
@@ -111,12 +116,20 @@ def comfort_excess(states: np.ndarray, past: np.ndarray, stride: int = COMFORT_S
     (the last one: now) and the candidate make together: one starting now and one starting at
     each earlier plan within the past (the filters see where the motion comes from and where
     it starts); the quantities are judged from now on.
+
+    ``prefixes_s`` judges, besides, the window that starts now cut after each of these many
+    seconds. NAVSIM's filters fit one quadratic over a whole window, which smooths away a brake
+    tapped and released; a fit over the first second reads its jerk. Stricter than the closed
+    loop's 4 s windows on purpose: the next plans' motion, which fills the rest of those, is
+    unknown here, and a candidate whose speed changes abruptly then gives way to a smooth one.
     """
     n = states.shape[0]
     past = np.broadcast_to(past[None], (n, *past.shape))
     worst = np.zeros(n)
-    for start in range(past.shape[1] - 1, -1, -stride):
-        window = np.concatenate([past[:, start:], states], axis=1)[:, :COMFORT_WINDOW]
+    windows = [(a, COMFORT_WINDOW) for a in range(past.shape[1] - 1, -1, -stride)]
+    windows += [(past.shape[1] - 1, int(round(s / SIM_DT)) + 1) for s in prefixes_s]
+    for start, length in windows:
+        window = np.concatenate([past[:, start:], states], axis=1)[:, :length]
         if window.shape[1] < 5:
             continue
         q = comfort_signals(window)
@@ -129,9 +142,14 @@ def comfort_excess(states: np.ndarray, past: np.ndarray, stride: int = COMFORT_S
     return worst
 
 
-def comfort_ok(states: np.ndarray, past: np.ndarray, stride: int = COMFORT_STRIDE) -> np.ndarray:
+def comfort_ok(
+    states: np.ndarray,
+    past: np.ndarray,
+    stride: int = COMFORT_STRIDE,
+    prefixes_s: tuple[float, ...] = (),
+) -> np.ndarray:
     """[N] bool: candidates comfortable by NAVSIM's bounds (:func:`comfort_excess` below 1)."""
-    return comfort_excess(states, past, stride) < 1.0
+    return comfort_excess(states, past, stride, prefixes_s) < 1.0
 
 
 def _box_frames(states: np.ndarray):
@@ -232,7 +250,7 @@ def score_candidates(
     else:
         ep = np.clip(progress / ref, 0.0, 1.0)
     ttc = (~ttc_bad).astype(float)
-    excess = comfort_excess(states, past)
+    excess = comfort_excess(states, past, prefixes_s=cfg.comfort_prefixes_s)
     c = (excess < 1.0).astype(float)
     score = nc * dac * (5 * ep + 5 * ttc + 2 * c) / 12
     if score.max() > 0:  # a lateral offset or a change of plan must buy more than it costs

@@ -151,6 +151,39 @@ def test_a_brake_comfortable_over_a_long_window_is_not_when_the_window_starts_no
     assert comfort_ok(brake(3.0), past).all() and not comfort_ok(brake(5.0), past).any()
 
 
+def test_a_short_brake_is_judged_on_the_start_of_the_window_that_starts_now():
+    from renderworld.planning.check import comfort_excess
+
+    past = np.stack([np.arange(-10, 1) * 1.0, np.zeros(11), np.zeros(11), np.full(11, 10.0)], 1)
+
+    def tap(a, steps):  # a m/s^2 for `steps` x 0.1 s from 10 m/s, then on at that speed
+        v = np.full(30, 10.0 - a * steps * 0.1)
+        v[:steps] = 10.0 - a * np.arange(1, steps + 1) * 0.1
+        return np.stack([np.cumsum(v * 0.1), np.zeros(30), np.zeros(30), v], 1)[None]
+
+    prefixes = CheckConfig().comfort_prefixes_s
+    assert prefixes  # the default judges them
+    # A 3 m/s^2 brake released after 0.3 s: NAVSIM's fit over the whole window smooths its
+    # jerk away; the window's first second does not.
+    assert comfort_excess(tap(3.0, 3), past)[0] < 1.0
+    assert comfort_excess(tap(3.0, 3), past, prefixes_s=prefixes)[0] > 1.0
+    # Cruising on stays comfortable however it is cut.
+    assert comfort_excess(tap(0.0, 3), past, prefixes_s=prefixes)[0] < 0.05
+
+
+def test_a_plan_that_taps_the_brake_gives_way_to_a_smooth_speed_profile():
+    t = np.arange(1, 31) * 0.1  # 2 m/s^2 for 0.5 s from 10 m/s, then on at 9 m/s
+    x = np.cumsum(np.where(t <= 0.5, V - 2.0 * t, V - 1.0) * 0.1)
+    plan = np.stack([x[4::5], np.zeros(6), np.zeros(6)], 1)
+    occ, poses = history()
+    strict = check_plan(occ, poses, plan, GRID).candidates
+    loose = check_plan(occ, poses, plan, GRID, CheckConfig(comfort_prefixes_s=())).candidates
+    assert strict.kind == loose.kind and (strict.C <= loose.C).all()  # judged more, never less
+    assert loose.best == 0 and loose.C[0] == 1  # NAVSIM's 4 s fit smooths the tap away
+    assert strict.C[0] == 0 and strict.kind[strict.best] == "idm"  # its first second does not
+    assert strict.progress_m[strict.best] >= strict.progress_m[0]  # and gives up no progress
+
+
 def test_a_pedestrian_leads_only_while_in_the_corridor():
     from renderworld.constants import EGO_CENTRE_OFFSET, EGO_LENGTH
     from renderworld.planning.candidates import leaders
