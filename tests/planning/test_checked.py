@@ -161,8 +161,7 @@ def test_a_short_brake_is_judged_on_the_start_of_the_window_that_starts_now():
         v[:steps] = 10.0 - a * np.arange(1, steps + 1) * 0.1
         return np.stack([np.cumsum(v * 0.1), np.zeros(30), np.zeros(30), v], 1)[None]
 
-    prefixes = CheckConfig().comfort_prefixes_s
-    assert prefixes  # the default judges them
+    prefixes = (1.0, 1.5, 2.0, 2.5)
     # A 3 m/s^2 brake released after 0.3 s: NAVSIM's fit over the whole window smooths its
     # jerk away; the window's first second does not.
     assert comfort_excess(tap(3.0, 3), past)[0] < 1.0
@@ -176,8 +175,10 @@ def test_a_plan_that_taps_the_brake_gives_way_to_a_smooth_speed_profile():
     x = np.cumsum(np.where(t <= 0.5, V - 2.0 * t, V - 1.0) * 0.1)
     plan = np.stack([x[4::5], np.zeros(6), np.zeros(6)], 1)
     occ, poses = history()
-    strict = check_plan(occ, poses, plan, GRID).candidates
-    loose = check_plan(occ, poses, plan, GRID, CheckConfig(comfort_prefixes_s=())).candidates
+    strict = check_plan(
+        occ, poses, plan, GRID, CheckConfig(comfort_prefixes_s=(1.0, 2.0))
+    ).candidates
+    loose = check_plan(occ, poses, plan, GRID).candidates  # the default: NAVSIM's windows only
     assert strict.kind == loose.kind and (strict.C <= loose.C).all()  # judged more, never less
     assert loose.best == 0 and loose.C[0] == 1  # NAVSIM's 4 s fit smooths the tap away
     assert strict.C[0] == 0 and strict.kind[strict.best] == "idm"  # its first second does not
