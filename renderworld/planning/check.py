@@ -142,14 +142,9 @@ def comfort_excess(
     return worst
 
 
-def comfort_ok(
-    states: np.ndarray,
-    past: np.ndarray,
-    stride: int = COMFORT_STRIDE,
-    prefixes_s: tuple[float, ...] = (),
-) -> np.ndarray:
+def comfort_ok(states: np.ndarray, past: np.ndarray, stride: int = COMFORT_STRIDE) -> np.ndarray:
     """[N] bool: candidates comfortable by NAVSIM's bounds (:func:`comfort_excess` below 1)."""
-    return comfort_excess(states, past, stride, prefixes_s) < 1.0
+    return comfort_excess(states, past, stride) < 1.0
 
 
 def _box_frames(states: np.ndarray):
