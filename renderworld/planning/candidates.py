@@ -72,6 +72,10 @@ class CheckConfig:
             on to now), so that consecutive plans agree unless a change buys something.
         discomfort_cost: and per unit of its worst comfort quantity beyond the bound (a
             fraction of it), so that the least uncomfortable wins where none is comfortable.
+        plan_margin: the learned plan (the first candidate) is driven while its choice value
+            trails the best one's by at most this much: a small comfort or progress shortfall
+            (comfort weighs 2/12) does not replace it, a collision, the kerb or a TTC breach
+            does (chosen on the development splits: docs/planner.md).
         continuous_start: every candidate starts with the ego's lateral acceleration now
             (:func:`renderworld.planning.checked.continue_lateral_accel`), so that the heading
             rate does not jump where one plan takes over from the last.
@@ -109,6 +113,7 @@ class CheckConfig:
     offset_cost: float = 0.04
     change_cost: float = 0.0
     discomfort_cost: float = 0.1
+    plan_margin: float = 0.2
     continuous_start: bool = True
     continuous_min_speed: float = 0.5
     path_spacing_m: float = 1.0

@@ -256,6 +256,8 @@ def score_candidates(
             cost = cost + cfg.change_cost * change
         choice = score - cost
         best = int(np.argmax(choice))
+        if score[0] > 0 and choice[0] >= choice[best] - cfg.plan_margin:
+            best = 0  # the learned plan, unless another candidate is clearly better
     else:  # every candidate collides or leaves the road: on the road, latest contact, in its
         # lane, then the hardest brake (a swerve into the next lane is a contact at fault)
         choice = score

@@ -175,14 +175,36 @@ def test_a_plan_that_taps_the_brake_gives_way_to_a_smooth_speed_profile():
     x = np.cumsum(np.where(t <= 0.5, V - 2.0 * t, V - 1.0) * 0.1)
     plan = np.stack([x[4::5], np.zeros(6), np.zeros(6)], 1)
     occ, poses = history()
-    strict = check_plan(
-        occ, poses, plan, GRID, CheckConfig(comfort_prefixes_s=(1.0, 2.0))
+    strict = check_plan(  # without the plan margin, which would keep a plan this close
+        occ, poses, plan, GRID, CheckConfig(comfort_prefixes_s=(1.0, 2.0), plan_margin=0.0)
     ).candidates
     loose = check_plan(occ, poses, plan, GRID).candidates  # the default: NAVSIM's windows only
     assert strict.kind == loose.kind and (strict.C <= loose.C).all()  # judged more, never less
     assert loose.best == 0 and loose.C[0] == 1  # NAVSIM's 4 s fit smooths the tap away
     assert strict.C[0] == 0 and strict.kind[strict.best] == "idm"  # its first second does not
     assert strict.progress_m[strict.best] >= strict.progress_m[0]  # and gives up no progress
+
+
+def test_the_plan_margin_keeps_the_learned_plan_unless_another_is_clearly_better():
+    t = np.arange(1, 31) * 0.1  # the brake tap above: comfortable only by NAVSIM's 4 s fit
+    x = np.cumsum(np.where(t <= 0.5, V - 2.0 * t, V - 1.0) * 0.1)
+    tap = np.stack([x[4::5], np.zeros(6), np.zeros(6)], 1)
+    occ, poses = history()
+    strict = (1.0, 2.0)
+    swapped = check_plan(occ, poses, tap, GRID, CheckConfig(comfort_prefixes_s=strict,
+                                                            plan_margin=0.0))  # fmt: skip
+    kept = check_plan(occ, poses, tap, GRID, CheckConfig(comfort_prefixes_s=strict,
+                                                         plan_margin=0.25))  # fmt: skip
+    c = kept.candidates
+    assert swapped.candidates.best != 0 and c.best == 0  # comfort alone buys no replacement
+    assert c.choice.max() - c.choice[0] > 0.1  # though another candidate scores higher
+    np.testing.assert_array_equal(kept.trajectory, tap[:, :2].astype(np.float32))
+    # A plan that leaves the road is replaced whatever the margin.
+    occ, poses = history(road_half_width=3.0)
+    swerve = np.stack([V * t[4::5], 1.5 * t[4::5] ** 2, np.zeros(6)], 1)
+    swerve[:, 2] = np.arctan2(np.gradient(swerve[:, 1]), np.gradient(swerve[:, 0]))
+    c = check_plan(occ, poses, swerve, GRID, CheckConfig(plan_margin=0.45)).candidates
+    assert c.DAC[0] == 0 and c.best != 0 and c.DAC[c.best] == 1
 
 
 def test_a_pedestrian_leads_only_while_in_the_corridor():
