@@ -27,7 +27,8 @@ and the tracked states are scored against the :class:`~renderworld.planning.scen
 The best candidate has the highest score less ``offset_cost`` per metre of lateral offset and
 ``change_cost`` per metre of mean distance from the previous plan (an offset or a change has to
 buy safety or progress: no weaving or dithering between equal candidates), the earlier one in
-candidate order on ties (the learned plan itself comes first). When every score is 0 the
+candidate order on ties (the learned plan itself comes first); the learned plan also wins while
+it scores above 0 and trails the best by at most ``plan_margin``. When every score is 0 the
 candidate that stays on the drivable area and meets an obstacle latest (never, best) is chosen,
 then the one with the least lateral offset, then the one driving least: the hardest brake in
 its lane (a swerve into the next lane makes a contact the ego's fault).
