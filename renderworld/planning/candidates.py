@@ -8,15 +8,15 @@ which side, is safe?". For each lateral offset (reached smoothly over :attr:`Che
 of the path) there are:
 
 * ``plan``: the learned plan's own waypoints, shifted by the offset, where it keeps its distance
-  to the leaders (below); else held back to where an IDM run at the plan's top speed behind
-  them would be;
+  to the leaders (below: its front bumper never within :attr:`CheckConfig.s0` of one); else held
+  back to where an IDM run at the plan's top speed behind them would be;
 * ``idm``: the Intelligent Driver Model (Treiber) along the path towards a fraction of the
   plan's speed, behind the leader of each moment, as PDM-Closed simulates it: at every 0.1 s,
   the nearest forecast obstacle point ahead of the front bumper inside the corridor (the ego box
   widened by :attr:`CheckConfig.corridor_margin_m` on each side) at that time — a mover where
   the forecast puts it then, or static scenery — moving along the path at its velocity's
-  component, never backwards (:func:`leaders`). A pedestrian who will have crossed is not
-  waited for; one who will be in the lane is;
+  component, never backwards (:func:`renderworld.planning.idm.leaders`). A pedestrian who will
+  have crossed is not waited for; one who will be in the lane is;
 * ``brake``: a constant deceleration to a stop along the path.
 
 Frames: the current ego frame (x forward, y left; metres, seconds, m/s); the ego starts at the
@@ -29,14 +29,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from renderworld.constants import EGO_CENTRE_OFFSET, EGO_LENGTH, EGO_WIDTH, KEYFRAME_DT
+from renderworld.constants import KEYFRAME_DT
+from renderworld.planning.idm import Leaders, idm_arc, leaders, too_close
 from renderworld.planning.scene import ForecastScene
 
 __all__ = ["CheckConfig", "Candidates", "Leaders", "PlanPath", "leaders", "make_candidates"]
 
-_FRONT = EGO_CENTRE_OFFSET + EGO_LENGTH / 2  # rear axle -> front bumper, metres
 _MAX_TURN = np.radians(60.0)  # a path point turning more than this folds the path
-_BEHIND_M = 1.0  # corridor points this far behind the front bumper still lead, metres
 
 
 @dataclass(frozen=True)
@@ -76,6 +75,15 @@ class CheckConfig:
             trails the best one's by at most this much: a small comfort or progress shortfall
             (comfort weighs 2/12) does not replace it, a collision, the kerb or a TTC breach
             does (chosen on the development splits: docs/planner.md).
+        cap_gap_s: None, or the learned plan is held back by the IDM cap only where its front
+            bumper comes within ``s0`` + this many seconds at its own speed of a leader at some
+            waypoint; None: always (IDM brakes a little for any leader, however far, and in
+            turns re-timed the plan into discomfort: docs/planner.md).
+        margin_counts_discomfort: whether the learned plan's own discomfort cost counts
+            when it is weighed against the best candidate with ``plan_margin``; False: only its
+            score does (comfort weighs 2/12 there), so however far a plan overshoots a comfort
+            bound it is only replaced for a collision, the kerb, a TTC breach or a clear loss of
+            progress (True lost the development turns to a steady path that missed the turn).
         continuous_start: every candidate starts with the ego's lateral acceleration now
             (:func:`renderworld.planning.checked.continue_lateral_accel`), so that the heading
             rate does not jump where one plan takes over from the last.
@@ -114,6 +122,8 @@ class CheckConfig:
     change_cost: float = 0.0
     discomfort_cost: float = 0.1
     plan_margin: float = 0.2
+    margin_counts_discomfort: bool = False
+    cap_gap_s: float | None = 0.0
     continuous_start: bool = True
     continuous_min_speed: float = 0.5
     path_spacing_m: float = 1.0
@@ -214,119 +224,6 @@ class Candidates:
     reference_m: float | None = None
 
 
-@dataclass
-class Leaders:
-    """Forecast obstacles in the ego's corridor over time, along a path.
-
-    Attributes:
-        arc: [T, Q] arc length (metres, from the ego's rear axle now) at which each obstacle
-            point lies in the corridor at time ``t * sub_dt`` (inf: outside it then).
-        speed: [T, Q] the point's velocity component along the path there, m/s (never < 0).
-        sub_dt: seconds between rows.
-    """
-
-    arc: np.ndarray
-    speed: np.ndarray
-    sub_dt: float
-
-    def nearest(self, i: int, front: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(gap [F] metres, speed [F] m/s) of the leader at row ``i`` for front bumpers at arc
-        ``front`` [F] (inf, 0 where none): the nearest point ahead, counting points up to
-        :data:`_BEHIND_M` behind the bumper (they are about to touch it)."""
-        arc = self.arc[min(i, len(self.arc) - 1)]
-        if not arc.size:
-            return np.full(len(front), np.inf), np.zeros(len(front))
-        ahead = arc[None] > front[:, None] - _BEHIND_M  # [F, Q]
-        gaps = np.where(ahead, arc[None] - front[:, None], np.inf)
-        j = gaps.argmin(1)
-        gap = gaps[np.arange(len(front)), j]
-        lead_v = np.where(np.isfinite(gap), self.speed[min(i, len(self.arc) - 1)][j], 0.0)
-        return gap, lead_v
-
-
-def leaders(
-    scene: ForecastScene, path: PlanPath, offsets: tuple, cfg: CheckConfig, horizon: float,
-    sub_dt: float = 0.1,
-) -> list[Leaders]:  # fmt: skip
-    """The :class:`Leaders` of each lateral offset of a path: at every ``sub_dt`` up to
-    ``horizon`` seconds, the forecast obstacle points (movers where the forecast puts them then,
-    static scenery) inside the corridor, the ego box widened by ``cfg.corridor_margin_m`` on each
-    side around the shifted path (points are projected onto the unshifted path; the shift at
-    their arc length decides whether they lie in the shifted corridor).
-    """
-    s = np.arange(0.0, min(path.length, 80.0), 0.5)
-    centre, hd = path.at(s)
-    taus = np.arange(0.0, horizon + 1e-9, sub_dt)
-    n = len(taus)
-    half = EGO_WIDTH / 2 + cfg.corridor_margin_m
-    reach = half + max(abs(d) for d in offsets)
-    lo, hi = centre.min(0) - reach, centre.max(0) + reach
-
-    def project(p):  # [..., 2] -> arc, lateral offset (metres) relative to the path
-        dx = p[..., None, 0] - centre[:, 0]
-        dy = p[..., None, 1] - centre[:, 1]
-        k = (dx * dx + dy * dy).argmin(-1)
-        c, sn = np.cos(hd[k]), np.sin(hd[k])
-        rx, ry = p[..., 0] - centre[k, 0], p[..., 1] - centre[k, 1]
-        return s[k] + c * rx + sn * ry, -sn * rx + c * ry, c, sn
-
-    static = scene.mover < 0
-    sp = scene.points[static]
-    sp = sp[((sp >= lo) & (sp <= hi)).all(-1)]
-    arc_s, lat_s, _, _ = project(sp)  # static scenery: projected once, standing still
-    moving = np.flatnonzero(~static)
-    arc_m = np.zeros((n, 0))
-    lat_m = np.zeros((n, 0))
-    v_m = np.zeros((n, 0))
-    if len(moving):
-        pts = scene.points_at(np.r_[taus, taus + 0.1])[:, moving]  # [2 T, Qm, 2]
-        near = np.flatnonzero(((pts[:n] >= lo) & (pts[:n] <= hi)).all(-1).any(0))
-        if len(near):
-            p = pts[:n, near]
-            vel = (pts[n:, near] - p) / 0.1
-            arc_m, lat_m, c, sn = project(p)
-            v_m = np.maximum(c * vel[..., 0] + sn * vel[..., 1], 0.0)
-    arc = np.concatenate([np.broadcast_to(arc_s, (n, len(arc_s))), arc_m], 1)
-    lat = np.concatenate([np.broadcast_to(lat_s, (n, len(lat_s))), lat_m], 1)
-    along = np.concatenate([np.zeros((n, len(arc_s))), v_m], 1)
-    u = np.clip(arc / max(cfg.ramp_m, 1e-6), 0.0, 1.0)
-    ramp = u * u * (3 - 2 * u)
-    out = []
-    for d in offsets:
-        inside = (np.abs(lat - d * ramp) <= half) & (arc >= 0.0)
-        keep = inside.any(0)
-        out.append(Leaders(np.where(inside, arc, np.inf)[:, keep], along[:, keep], sub_dt))
-    return out
-
-
-def _idm_arc(v_now, targets, lead: Leaders, cfg, steps, dt) -> np.ndarray:
-    """[F, steps] arc lengths (metres) at each waypoint of IDM runs towards each target speed
-    [F] (m/s), each behind the leader its own position and the time give (:class:`Leaders`)."""
-    f = len(targets)
-    v = np.full(f, v_now, dtype=np.float64)
-    s = np.zeros(f)
-    v0 = np.maximum(np.asarray(targets, dtype=np.float64), 0.1)
-    sub = lead.sub_dt
-    n_sub = int(round(dt / sub))
-    out = np.empty((f, steps))
-    for k in range(steps):
-        for j in range(n_sub):
-            acc = cfg.a_max * (1 - (v / v0) ** 4)
-            gap, v_l = lead.nearest(k * n_sub + j, s + _FRONT)
-            has = np.isfinite(gap)
-            if has.any():
-                g = np.maximum(np.where(has, gap, 1.0), 0.05)
-                dv = v - v_l
-                s_star = cfg.s0 + v * cfg.headway + v * dv / (2 * np.sqrt(cfg.a_max * cfg.b))
-                acc = acc - np.where(has, cfg.a_max * (np.maximum(s_star, 0.0) / g) ** 2, 0.0)
-            acc = np.maximum(acc, cfg.idm_min_accel)
-            v_new = np.maximum(v + acc * sub, 0.0)
-            s = s + 0.5 * (v + v_new) * sub
-            v = v_new
-        out[:, k] = s
-    return out
-
-
 def _brake_waypoints(path, d, v_now, decels, cfg, steps, dt) -> np.ndarray:
     """[F, steps, 2] waypoints of constant decelerations [F] (m/s^2) to a stop."""
     t = np.arange(1, steps + 1) * dt
@@ -382,10 +279,11 @@ def make_candidates(
     wps, kinds, offs, spd = [], [], [], []
     leads = leaders(scene, path, cfg.offsets_m, cfg, steps * dt)
     for d, lead in zip(cfg.offsets_m, leads):
-        # The plan, no farther than IDM at the plan's top speed would go behind the leaders
-        # (its headway is the margin the forecast needs: the exact plan beside it, tried on the
-        # planner dev split, collided more; docs/planner.md).
-        s_cap = np.minimum(s_plan, _idm_arc(speed, [max(top, speed)], lead, cfg, steps, dt)[0])
+        # The plan, where it comes too close to a leader no farther than IDM at the plan's top
+        # speed would go behind them (its headway is the margin the forecast needs there).
+        s_cap = s_plan
+        if cfg.cap_gap_s is None or too_close(s_plan, step_speed, lead, cfg, dt):
+            s_cap = np.minimum(s_plan, idm_arc(speed, [max(top, speed)], lead, cfg, steps, dt)[0])
         if np.allclose(s_cap, s_plan, rtol=0, atol=1e-9):
             s_cap = s_plan
         # The learned waypoints themselves, exactly, where nothing changed them.
@@ -395,7 +293,7 @@ def make_candidates(
         offs.append(d)
         spd.append(top)
         if targets:
-            wps.append(path.offset(_idm_arc(speed, targets, lead, cfg, steps, dt), d, cfg.ramp_m))
+            wps.append(path.offset(idm_arc(speed, targets, lead, cfg, steps, dt), d, cfg.ramp_m))
             kinds += ["idm"] * len(targets)
             offs += [d] * len(targets)
             spd += targets

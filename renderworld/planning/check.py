@@ -251,13 +251,15 @@ def score_candidates(
     score = nc * dac * (5 * ep + 5 * ttc + 2 * c) / 12
     if score.max() > 0:  # a lateral offset or a change of plan must buy more than it costs
         cost = cfg.offset_cost * np.abs(cands.offset_m)
-        cost = cost + cfg.discomfort_cost * np.maximum(excess - 1.0, 0.0)
+        discomfort = cfg.discomfort_cost * np.maximum(excess - 1.0, 0.0)
+        cost = cost + discomfort
         if previous is not None and cfg.change_cost:
             change = np.hypot(*(wp - np.asarray(previous, dtype=np.float64)[None]).T).mean(0)
             cost = cost + cfg.change_cost * change
         choice = score - cost
         best = int(np.argmax(choice))
-        if score[0] > 0 and choice[0] >= choice[best] - cfg.plan_margin:
+        plan = choice[0] if cfg.margin_counts_discomfort else score[0] - (cost[0] - discomfort[0])
+        if score[0] > 0 and plan >= choice[best] - cfg.plan_margin:
             best = 0  # the learned plan, unless another candidate is clearly better
     else:  # every candidate collides or leaves the road: on the road, latest contact, in its
         # lane, then the hardest brake (a swerve into the next lane is a contact at fault)

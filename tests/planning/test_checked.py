@@ -219,12 +219,18 @@ def test_a_pedestrian_leads_only_while_in_the_corridor():
     gap_now, _ = lead.nearest(0, np.array([3.0]))
     gap_later, _ = lead.nearest(25, np.array([3.0]))  # 2.5 s on: it has crossed
     assert 15.0 < gap_now[0] < 20.0 and np.isinf(gap_later[0])
-    # The plan brakes for it, then drives on past where it would stop for a pedestrian standing
-    # there (2 m short of it), speeding up again once the lane is clear.
-    x = check_plan(occ, poses, straight_plan(), GRID).candidates.waypoints[0, :, 0]
+    # Held back by IDM wherever a leader is (cap_gap_s=None), the plan brakes for it, then drives
+    # on past where it would stop for a pedestrian standing there (2 m short of it), speeding up
+    # again once the lane is clear.
+    cfg = CheckConfig(cap_gap_s=None)
+    x = check_plan(occ, poses, straight_plan(), GRID, cfg).candidates.waypoints[0, :, 0]
     step = np.diff(np.r_[0.0, x])
     assert x[-1] > 20.0 - 2.0 - (EGO_CENTRE_OFFSET + EGO_LENGTH / 2)
     assert step[-1] > step.min() + 0.3 and step.min() < 0.5 * V * DT
+    # Held back only where it would come within s0 of a leader (the default), the plan goes on
+    # at its speed; the check finds it meets the pedestrian and brakes instead.
+    c = check_plan(occ, poses, straight_plan(), GRID).candidates
+    assert c.NC[0] == 0 and c.kind[c.best] == "brake" and c.NC[c.best] == c.TTC[c.best] == 1
 
 
 def test_a_path_that_folds_back_is_driven_forwards():
@@ -365,3 +371,28 @@ def test_a_lead_car_met_by_an_oncoming_one_keeps_its_own_motion():
                     key=lambda tr: tr.velocity[0])  # fmt: skip
     assert [float(tr.velocity[0]) for tr in tracks] == pytest.approx([-7.0, 9.0], abs=1.0)
     assert tracks[1].centroid[1] < 0.5 < tracks[0].centroid[1]  # each keeps its own lane's cells
+
+
+def test_however_uncomfortable_a_safe_plan_is_it_is_replaced_only_where_its_discomfort_counts():
+    t = np.arange(1, 31) * 0.1  # 4 m/s^2 for 0.5 s from 10 m/s, then on at 8 m/s
+    x = np.cumsum(np.where(t <= 0.5, V - 4.0 * t, V - 2.0) * 0.1)
+    tap = np.stack([x[4::5], np.zeros(6), np.zeros(6)], 1)
+    occ, poses = history()
+    strict = (1.0, 2.0)  # judged on its first second, the tap breaks the jerk bound
+    counted = check_plan(
+        occ, poses, tap, GRID, CheckConfig(comfort_prefixes_s=strict, margin_counts_discomfort=True)
+    )
+    scored = check_plan(
+        occ,
+        poses,
+        tap,
+        GRID,
+        CheckConfig(comfort_prefixes_s=strict, margin_counts_discomfort=False),
+    )
+    a, b = counted.candidates, scored.candidates
+    assert a.C[0] == 0 and a.NC[0] == 1 and a.TTC[0] == 1 and a.DAC[0] == 1
+    # Its discomfort cost puts it more than the plan margin behind a smooth candidate ...
+    assert a.choice.max() - a.choice[0] > CheckConfig().plan_margin and a.best != 0
+    # ... its score, which weighs comfort 2/12, does not: the learned plan is driven as planned.
+    assert a.choice.max() - a.score[0] < CheckConfig().plan_margin and b.best == 0
+    np.testing.assert_array_equal(scored.trajectory, tap[:, :2].astype(np.float32))
