@@ -83,7 +83,7 @@ class CheckConfig:
             when it is weighed against the best candidate with ``plan_margin``; False: only its
             score does (comfort weighs 2/12 there), so however far a plan overshoots a comfort
             bound it is only replaced for a collision, the kerb, a TTC breach or a clear loss of
-            progress (True lost the development turns to a steady path that missed the turn).
+            progress (False won the development turns but lost turn_oncoming: docs/planner.md).
         continuous_start: every candidate starts with the ego's lateral acceleration now
             (:func:`renderworld.planning.checked.continue_lateral_accel`), so that the heading
             rate does not jump where one plan takes over from the last.
@@ -122,7 +122,7 @@ class CheckConfig:
     change_cost: float = 0.0
     discomfort_cost: float = 0.1
     plan_margin: float = 0.2
-    margin_counts_discomfort: bool = False
+    margin_counts_discomfort: bool = True
     cap_gap_s: float | None = 0.0
     continuous_start: bool = True
     continuous_min_speed: float = 0.5
