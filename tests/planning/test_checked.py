@@ -219,17 +219,17 @@ def test_a_pedestrian_leads_only_while_in_the_corridor():
     gap_now, _ = lead.nearest(0, np.array([3.0]))
     gap_later, _ = lead.nearest(25, np.array([3.0]))  # 2.5 s on: it has crossed
     assert 15.0 < gap_now[0] < 20.0 and np.isinf(gap_later[0])
-    # Held back by IDM wherever a leader is (cap_gap_s=None), the plan brakes for it, then drives
-    # on past where it would stop for a pedestrian standing there (2 m short of it), speeding up
-    # again once the lane is clear.
+    # Held back by IDM wherever a leader is (cap_gap_s=None, the default), the plan brakes for
+    # it, then drives on past where it would stop for a pedestrian standing there (2 m short of
+    # it), speeding up again once the lane is clear.
     cfg = CheckConfig(cap_gap_s=None)
     x = check_plan(occ, poses, straight_plan(), GRID, cfg).candidates.waypoints[0, :, 0]
     step = np.diff(np.r_[0.0, x])
     assert x[-1] > 20.0 - 2.0 - (EGO_CENTRE_OFFSET + EGO_LENGTH / 2)
     assert step[-1] > step.min() + 0.3 and step.min() < 0.5 * V * DT
-    # Held back only where it would come within s0 of a leader (the default), the plan goes on
+    # Held back only where it would come within s0 of a leader (cap_gap_s=0), the plan goes on
     # at its speed; the check finds it meets the pedestrian and brakes instead.
-    c = check_plan(occ, poses, straight_plan(), GRID).candidates
+    c = check_plan(occ, poses, straight_plan(), GRID, CheckConfig(cap_gap_s=0.0)).candidates
     assert c.NC[0] == 0 and c.kind[c.best] == "brake" and c.NC[c.best] == c.TTC[c.best] == 1
 
 
