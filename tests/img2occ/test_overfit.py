@@ -52,8 +52,10 @@ def _train(batch, steps: int) -> tuple[Img2Occ, float, float]:
 
 def test_overfits_one_sample_short(synthetic_batch):
     base = _baseline_miou(synthetic_batch)
-    _, start, end = _train(synthetic_batch, steps=120)
-    # measured: untrained 0.00, baseline 0.05, 120 steps 0.65 (seed 0)
+    _, start, end = _train(synthetic_batch, steps=200)
+    # measured (seed 0): untrained 0.00, baseline 0.05; 200 steps 0.77 with AVX-512 kernels,
+    # 0.76 with AVX2 (at 120 steps 0.49 and 0.53: the rounding of the CPU's kernels moved it
+    # across the bar, so the test trains on to where the machines agree)
     assert start < 0.05
     assert end > 0.5 and end > base + 0.4, (start, end, base)
 
