@@ -231,6 +231,11 @@ def test_a_pedestrian_leads_only_while_in_the_corridor():
     # at its speed; the check finds it meets the pedestrian and brakes instead.
     c = check_plan(occ, poses, straight_plan(), GRID, CheckConfig(cap_gap_s=0.0)).candidates
     assert c.NC[0] == 0 and c.kind[c.best] == "brake" and c.NC[c.best] == c.TTC[c.best] == 1
+    # A car standing in the lane is come near whatever the setting: the plan stops short of it.
+    occ, poses = history([(CAR, lambda t: (25.0, -0.8), (2, 1))])
+    ends = [check_plan(occ, poses, straight_plan(), GRID, CheckConfig(cap_gap_s=g))
+            .candidates.waypoints[0, -1, 0] for g in (None, 0.0)]  # fmt: skip
+    assert ends[0] == ends[1] < straight_plan()[-1, 0] - 10.0
 
 
 def test_a_path_that_folds_back_is_driven_forwards():
