@@ -5,8 +5,9 @@
         experiments=paper out=outputs/paper        # real data, paper scale, one GPU
 
 Steps (each skipped when its inputs did not change; see renderworld.pipeline.runner):
-fixtures -> infos -> tokenizer (train, eval) -> img2occ (train, eval, pseudo labels)
--> world model (train, eval) -> report.
+fixtures -> infos -> img2occ (train, eval, pseudo labels), beside it the scenario data, the
+tokenizer (train, eval) and the world model -> the Camera setting (tokenizer and world model
+fine-tuned on the pseudo labels) -> evaluation, closed loop -> report.
 """
 
 from __future__ import annotations

@@ -34,15 +34,21 @@ EXPERIMENTS = {
         "tokenizer": "tokenizer_mini",
         "img2occ": "img2occ_mini",
         "world_model": "world_model_mini",
-        "world_model_camera": "world_model_mini",
+        "tokenizer_camera": "tokenizer_camera_mini",
+        "world_model_camera": "world_model_camera_mini",
     },
     "paper": {
         "tokenizer": "paper_tokenizer",
         "img2occ": "paper_img2occ",
         "world_model": "paper_world_model",
+        "tokenizer_camera": "paper_tokenizer",
         "world_model_camera": "paper_camera",
     },
 }
+#: Whether each family's Camera setting starts from the 3D-Occ tokenizer and world model
+#: (``init_from``) and fine-tunes them on the pseudo labels (mini: docs/world_model.md, the
+#: Camera setting) or trains both from scratch on the pseudo labels alone (paper).
+CAMERA_FROM_3D = {"mini": True, "paper": False}
 #: Device of each family's Img2Occ training: its labels are exported on the same device.
 EXPORT_DEVICE = {"mini": "cpu", "paper": "cuda"}
 
@@ -59,6 +65,7 @@ def _train_and_eval(
     ckpt: str = REPORTED_CHECKPOINT,
     evaluate: bool = True,
     cores: int | None = None,
+    eval_extra: tuple[str, ...] = (),
 ) -> list[Step]:
     """A training step (resumable from its ``last.pt``) and the step evaluating its checkpoint.
 
@@ -74,7 +81,9 @@ def _train_and_eval(
         ckpt: the checkpoint file evaluated (``last.pt``: ``best.pt`` is chosen on the split
             the evaluation reports, see ``REPORTED_CHECKPOINT``).
         evaluate: False: the training step only (another step evaluates its checkpoint).
-        cores: the training step's ``Step.cores`` (1: it runs beside another one-core step).
+        cores: the training step's ``Step.cores`` (1: it runs beside another one-core step),
+            and the evaluation's.
+        eval_extra: overrides for the evaluation command only.
     """
     py, run = sys.executable, out / name
     base = (f"experiment={experiment}", *args)
@@ -104,9 +113,11 @@ def _train_and_eval(
                 *base,
                 f"ckpt={run / 'checkpoints' / ckpt}",
                 f"run_dir={out / (name + '_eval')}",
+                *eval_extra,
             ),  # fmt: skip
             out / f"{name}_eval",
             depends_on=(name,),
+            cores=cores,
         ),
     ]
 
@@ -139,9 +150,10 @@ class _Paths:
 
     @property
     def one_core(self) -> bool:
-        """Img2Occ runs beside the 3D-Occ world model, then its interaction-split evaluation,
-        each a one-core step on one thread: on a CPU (mini family) two one-thread steps keep
-        two cores busier than either on two threads; on a GPU (paper) each runs alone."""
+        """Img2Occ and the Camera setting's trainings run beside the tokenizer, the 3D-Occ
+        world model and its interaction-split evaluation, each a one-core step on one thread:
+        on a CPU (mini family) two one-thread steps keep two cores busier than either on two
+        threads; on a GPU (paper) each runs alone."""
         return self.family == "mini"
 
     @property
@@ -178,13 +190,15 @@ def main_job_steps(cfg: Any, repo: Path) -> list[Step]:
         family=family,
         version=cfg.get("version"),
     )
-    steps = _data_steps(cfg, p)
+    # Img2Occ first, once the fixture is converted: the Camera setting's chain behind it
+    # (Img2Occ, its labels, the Camera tokenizer and world model) is the job's longest. On a
+    # CPU the one-core scenario simulations, the tokenizer and the world model run beside it.
+    steps = [*_data_steps(cfg, p), *_img2occ_steps(p)]
     scen = None
     if cfg.get("scenarios") and family == "mini":
-        # Listed before the trainings: the one-core simulations run beside each other.
         scen = ScenarioData.beside(p.data, repo)
         steps += scenario_steps(scen, repo)
-    steps += _occupancy_steps(p)
+    steps += _tokenizer_steps(p)
     if (repo / "configs" / "stage" / "world_model.yaml").is_file():
         steps += _world_model_steps(p, scen)
     steps += _viewer_steps(p, {s.name for s in steps})
@@ -227,23 +241,29 @@ def _data_steps(cfg: Any, p: _Paths) -> list[Step]:
     ]
 
 
-def _occupancy_steps(p: _Paths) -> list[Step]:
-    """The tokenizer on GT occupancy; Img2Occ, its evaluation and its pseudo labels."""
-    tok_exp, i2o_exp = p.experiment("tokenizer"), p.experiment("img2occ")
-    steps = _train_and_eval(
+def _tokenizer_steps(p: _Paths) -> list[Step]:
+    """The tokenizer on GT occupancy and its evaluation."""
+    tok_exp = p.experiment("tokenizer")
+    return _train_and_eval(
         "tokenizer",
         ("train the AM-VAE tokenizer on GT occupancy",
          "evaluate tokenizer reconstruction on the val split"),  # fmt: skip
         tok_exp, p.common, p.out, ("infos",),
-        (*p.code("tokenizer"), *p.configs("tokenizer", tok_exp)), p.extra,
+        (*p.code("tokenizer"), *p.configs("tokenizer", tok_exp)), (*p.extra, *p.one_thread),
+        cores=p.side_cores, eval_extra=p.one_thread,
     )  # fmt: skip
-    steps += _train_and_eval(
+
+
+def _img2occ_steps(p: _Paths) -> list[Step]:
+    """Img2Occ, its evaluation and its pseudo labels."""
+    i2o_exp = p.experiment("img2occ")
+    steps = _train_and_eval(
         "img2occ",
         ("train Img2Occ (semantic Gaussians) from LiDAR-projected 2-D labels",
          "evaluate 3-D occupancy on the val split (Occ3D protocol, camera mask)"),  # fmt: skip
         i2o_exp, p.common, p.out, ("infos",),
         (*p.code("img2occ", "splat"), *p.configs("img2occ", i2o_exp)),
-        (*p.extra, *p.one_thread), cores=p.side_cores,
+        (*p.extra, *p.one_thread), cores=p.side_cores, eval_extra=p.one_thread,
     )  # fmt: skip
     pseudo = p.out / "pseudo_labels"
     steps.append(
@@ -261,6 +281,7 @@ def _occupancy_steps(p: _Paths) -> list[Step]:
             ),  # fmt: skip
             pseudo,
             depends_on=("img2occ",),
+            cores=p.side_cores,
         )
     )
     return steps
@@ -273,7 +294,8 @@ def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step
     pseudo = p.out / "pseudo_labels"
     tok = (f"stage.tokenizer_ckpt={p.ckpt('tokenizer')}",)
     wm_exp, cam_exp, tok_exp = (
-        p.experiment("world_model"), p.experiment("world_model_camera"), p.experiment("tokenizer")
+        p.experiment("world_model"), p.experiment("world_model_camera"),
+        p.experiment("tokenizer_camera"),
     )  # fmt: skip
     wm_inputs = (*p.code("world"), *p.configs("world_model", wm_exp))
     library = (f"stage.extra_train_roots=[{scen.library}]",) if scen else ()
@@ -290,23 +312,29 @@ def _world_model_steps(p: _Paths, scen: ScenarioData | None = None) -> list[Step
         steps.append(
             interaction_eval_step(scen, wm_exp, *tok_wm, p.out, p.one_thread, p.side_cores)
         )
-    # Camera setting (paper): its own tokenizer, trained on the pseudo labels; the
-    # world_model_eval step scores it in the Camera rows (camera_tokenizer_ckpt).
-    cam_tok = p.ckpt("tokenizer_camera")
+    # Camera setting: its own tokenizer and world model on the pseudo labels (fine-tuned from
+    # the 3D-Occ ones where CAMERA_FROM_3D); world_model_eval scores it in the Camera rows.
+    cam_tok, from_3d = p.ckpt("tokenizer_camera"), CAMERA_FROM_3D[p.family]
+    init_tok = (f"init_from={p.ckpt('tokenizer')}",) if from_3d else ()
+    init_wm = (f"init_from={p.ckpt('world_model')}",) if from_3d else ()
     steps += _train_and_eval(
         "tokenizer_camera",
-        ("train the AM-VAE tokenizer on Img2Occ pseudo labels (Camera setting)", ""),
-        tok_exp, (*p.common, f"stage.occ_root={pseudo}"), p.out, ("pseudo_labels",),
-        (*p.code("tokenizer"), *p.configs("tokenizer", tok_exp)), p.extra,
-        evaluate=False,
+        ("train the AM-VAE tokenizer on Img2Occ pseudo labels (Camera setting)"
+         + (", from the 3D-Occ tokenizer" if from_3d else ""), ""),
+        tok_exp, (*p.common, f"stage.occ_root={pseudo}"), p.out,
+        ("pseudo_labels", *(("tokenizer",) if from_3d else ())),
+        (*p.code("tokenizer"), *p.configs("tokenizer", tok_exp)),
+        (*init_tok, *p.extra, *p.one_thread), evaluate=False, cores=p.side_cores,
     )  # fmt: skip
     steps += _train_and_eval(
         "world_model_camera",
-        ("train the world model on Img2Occ pseudo labels (Camera setting)", ""),
+        ("train the world model on Img2Occ pseudo labels (Camera setting)"
+         + (", from the 3D-Occ world model" if from_3d else ""), ""),
         cam_exp,
         (*p.common, f"stage.tokenizer_ckpt={cam_tok}", f"stage.occ_root={pseudo}"), p.out,
-        ("tokenizer_camera", "pseudo_labels"),
-        (*wm_inputs, *p.configs("world_model", cam_exp)), p.extra, evaluate=False,
+        ("tokenizer_camera", "pseudo_labels", *(("world_model",) if from_3d else ())),
+        (*wm_inputs, *p.configs("world_model", cam_exp)), (*init_wm, *p.extra, *p.one_thread),
+        evaluate=False, cores=p.side_cores,
     )  # fmt: skip
     # The planners the demo trained: tokenizer + world model in one bundle (load_planner), of
     # each setting (the Camera one drives on its cameras in the closed loop).

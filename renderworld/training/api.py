@@ -18,7 +18,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
-from renderworld.training.checkpoint import check_state_dict_keys, load_checkpoint
+from renderworld.training.checkpoint import CheckpointError, check_state_dict_keys, load_checkpoint
 from renderworld.training.config import (
     OptimizerConfig,
     SchedulerConfig,
@@ -48,7 +48,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
     Args:
         cfg: Composed config (``configs/train.yaml``): ``stage``, ``optimizer``, ``scheduler``,
-            ``trainer``, ``seed``, ``run_dir``, ``resume``.
+            ``trainer``, ``seed``, ``run_dir``, ``resume``, ``init_from``.
 
     Returns:
         ``{"train/loss", "val/<metric>"..., "best/<monitor>", "step", "epoch",
@@ -57,7 +57,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     Raises:
         ValueError: invalid config, missing ``???`` key, a run directory that already holds
             a checkpoint without ``resume=true``.
-        CheckpointError: ``resume=true`` with an unusable ``last.pt``.
+        CheckpointError: ``resume=true`` with an unusable ``last.pt``; an ``init_from``
+            checkpoint that is unusable, of another stage or of another architecture.
     """
     tcfg, ocfg, scfg = _validated_groups(cfg)
     _set_torch_flags(tcfg)
@@ -75,11 +76,15 @@ def train(cfg: DictConfig) -> dict[str, float]:
                 f"run_dir {str(run_dir)!r} already holds {last.name}: pass resume=true to "
                 "continue it, or choose another run_dir"
             )
+        init = _init_checkpoint(cfg, stage_name) if ckpt is None else None
         stage = _build_stage(cfg)
         yaml_text = config_to_yaml(cfg)
         trainer = Trainer(stage, cfg, run_dir, info, tcfg, ocfg, scfg, _seed(cfg), yaml_text)
         if ckpt is not None:
             trainer.load_state_dict(ckpt, source=f"checkpoint {str(last)!r}")
+        elif init is not None:
+            trainer.init_weights(init, source=f"init_from {str(cfg.init_from)!r}")
+            log.info("%s starts from the weights of %s", stage_name, cfg.init_from)
         # Only now, with everything validated, write into the run directory.
         if info.is_main:
             run_dir.mkdir(parents=True, exist_ok=True)
@@ -100,6 +105,22 @@ def train(cfg: DictConfig) -> dict[str, float]:
         return metrics
     finally:
         shutdown_distributed(info)
+
+
+def _init_checkpoint(cfg: DictConfig, stage_name: str) -> dict[str, Any] | None:
+    """The checkpoint of ``init_from`` (None: unset), loaded and checked before anything runs.
+
+    Raises:
+        CheckpointError: an unusable file or one of another stage; the message names
+            ``init_from``.
+    """
+    path = cfg.get("init_from")
+    if not path:
+        return None
+    try:
+        return load_checkpoint(Path(str(path)), expected_stage=stage_name)
+    except CheckpointError as err:
+        raise CheckpointError(f"init_from: {err}") from err
 
 
 #: Top-level eval keys read by the world_model stage only (configs/eval.yaml).

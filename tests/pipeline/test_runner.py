@@ -97,40 +97,30 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
             assert any(str(ckpt) in " ".join(e.command) for e in evals), s.name
     for required in ("fixtures", "infos", "tokenizer", "img2occ", "pseudo_labels"):
         assert required in names
-    # The simulations and conversions share the machine, then Img2Occ trains on one thread
-    # beside the 3D-Occ world model and its interaction-split evaluation; the rest runs alone.
+    # On a CPU every step up to the last world model's runs on one core beside another: Img2Occ
+    # and the Camera chain behind it on one, the scenario data, the tokenizer and the 3D-Occ
+    # world model on the other; the closing evaluations have the machine.
     data = {"fixtures", "infos", "scenario_data", "scenario_infos", "interaction_data",
             "interaction_infos"}  # fmt: skip
-    pair = {"img2occ", "world_model"}
+    camera = {"img2occ", "img2occ_eval", "pseudo_labels", "tokenizer_camera",
+              "world_model_camera"}  # fmt: skip
+    gt = {"tokenizer", "tokenizer_eval", "world_model", "world_model_interactions"}
     shared = {s.name for s in steps if s.cores is not None}
-    assert shared == data | pair | {"world_model_interactions"}
+    assert shared == data | camera | gt
     assert all(s.cores == 1 for s in steps if s.name in shared)
-    assert max(names.index(n) for n in data) < names.index("tokenizer")
-    for n in (*pair, "world_model_interactions"):
+    for n in (camera | gt) - {"pseudo_labels"}:
         assert "trainer.num_threads=1" in steps[names.index(n)].command, n
-    # After the world model, its evaluation starts on the freed core while Img2Occ trains:
-    # every step listed between them waits for Img2Occ.
-    by_name = {s.name: s for s in steps}
-
-    def upstream(name: str) -> set[str]:
-        deps = set(by_name[name].depends_on)
-        return deps.union(*(upstream(d) for d in deps)) if deps else deps
-
-    wm = names.index("world_model")
-    for s in steps[wm + 1 : names.index("world_model_interactions")]:
-        assert "img2occ" in upstream(s.name), s.name
+    # Img2Occ is listed right after the fixture's conversion, so it starts once the infos are
+    # written (the scheduler never lets a step pass one waiting for cores).
+    assert names.index("img2occ") == names.index("infos") + 1
+    assert set(steps[names.index("img2occ")].depends_on) == {"infos"}
     # On a GPU (the paper family) every training has the machine to itself, threads untouched.
     cfg.experiments = "paper"
     gpu = main_job_steps(cfg, repo)
     assert {s.name for s in gpu if s.cores is not None} <= data
     assert not any("trainer.num_threads=1" in s.command for s in gpu)
-    # Nothing that could wait for the whole machine stands between the pair in list order (the
-    # scheduler never lets a step pass one waiting for cores): each step there waits for one
-    # of the pair, so the second one starts beside the first.
-    first, second = sorted(names.index(n) for n in pair)
-    for s in steps[first + 1 : second]:
-        assert set(s.depends_on) & pair, s.name
-    assert set(steps[second].depends_on) <= set(names[:first]), "the pair's inputs come first"
+    assert not any(a.startswith("init_from=") for s in gpu for a in s.command)
+    cfg.experiments = "mini"
     # One world-model evaluation after both trainings: one table with both settings.
     wm = steps[names.index("world_model_eval")]
     assert names.index("world_model_eval") > names.index("world_model_camera")
@@ -146,20 +136,24 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
     cam_tok = str(out / "tokenizer_camera" / "checkpoints" / "last.pt")
     assert args["camera_tokenizer_ckpt"] == cam_tok
     assert "world_model_camera_eval" not in names
-    # The Camera setting's own tokenizer: trained on the pseudo labels, read by its world model.
+    # The Camera setting's own tokenizer: the 3D-Occ one fine-tuned on the pseudo labels, read
+    # by its world model, the 3D-Occ one fine-tuned on the same labels.
     tc = steps[names.index("tokenizer_camera")]
     assert names.index("pseudo_labels") < names.index("tokenizer_camera")
     assert names.index("tokenizer_camera") < names.index("world_model_camera")
-    assert set(tc.depends_on) == {"pseudo_labels"}
+    assert set(tc.depends_on) == {"pseudo_labels", "tokenizer"}
     targs = dict(a.split("=", 1) for a in tc.command[2:])
-    assert targs["experiment"] == "tokenizer_mini"
+    assert targs["experiment"] == "tokenizer_camera_mini"
     assert targs["stage.occ_root"] == str(out / "pseudo_labels")
+    assert targs["init_from"] == str(out / "tokenizer" / "checkpoints" / "last.pt")
     assert "tokenizer_camera_eval" not in names
     wmc = steps[names.index("world_model_camera")]
-    assert set(wmc.depends_on) == {"tokenizer_camera", "pseudo_labels"}
+    assert set(wmc.depends_on) == {"tokenizer_camera", "pseudo_labels", "world_model"}
     cargs = dict(a.split("=", 1) for a in wmc.command[2:])
+    assert cargs["experiment"] == "world_model_camera_mini"
     assert cargs["stage.tokenizer_ckpt"] == cam_tok
     assert cargs["stage.occ_root"] == str(out / "pseudo_labels")
+    assert cargs["init_from"] == str(out / "world_model" / "checkpoints" / "last.pt")
     gt = dict(a.split("=", 1) for a in steps[names.index("world_model")].command[2:])
     assert gt["stage.tokenizer_ckpt"] == str(out / "tokenizer" / "checkpoints" / "last.pt")
     # The planner of the world model the job trained (pose_warp in world_model_mini).

@@ -18,7 +18,7 @@ from renderworld.training.checkpoint import (
     save_checkpoint,
 )
 
-from .conftest import fit_cfg
+from .conftest import fit_cfg, params_of
 
 
 def _ckpt(model: nn.Module, stage: str = "regression", **extra) -> dict:
@@ -196,3 +196,38 @@ def test_resume_without_checkpoint_fails_clearly(tmp_path):
     with pytest.raises(CheckpointError, match=r"checkpoints/last\.pt': no such file"):
         train(fit_cfg(tmp_path, "resume=true"))
     assert not any(tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------ init_from
+def test_init_from_starts_from_the_weights_with_a_fresh_schedule(trained_run, tmp_path):
+    src = trained_run / "checkpoints" / "last.pt"
+    want = params_of(src)
+    runs = {}
+    for name, extra in (("init", (f"init_from={src}",)), ("fresh", ())):
+        runs[name] = tmp_path / name
+        train(fit_cfg(runs[name], *extra, "optimizer.lr=1e-12", "trainer.max_steps=2"))
+    init = torch.load(runs["init"] / "checkpoints" / "last.pt", weights_only=True)
+    assert init["step"] == 2  # a new run: step, optimizer and schedule start at 0
+    for key, value in want.items():
+        assert torch.allclose(init["model"][key], value, atol=1e-9), key
+    fresh = params_of(runs["fresh"] / "checkpoints" / "last.pt")
+    assert not all(torch.allclose(fresh[k], v) for k, v in want.items())
+
+
+def test_init_from_another_stage_fails_before_writing(trained_run, tmp_path):
+    src = tmp_path / "other.pt"
+    ckpt = torch.load(trained_run / "checkpoints" / "last.pt", weights_only=True)
+    ckpt["stage"] = "world_model"
+    torch.save(ckpt, src)
+    run = tmp_path / "run"
+    with pytest.raises(CheckpointError, match="init_from: checkpoint .* written by stage"):
+        train(fit_cfg(run, f"init_from={src}"))
+    assert not run.exists()
+
+
+def test_init_from_another_architecture_fails_before_writing(trained_run, tmp_path):
+    run = tmp_path / "run"
+    src = trained_run / "checkpoints" / "last.pt"
+    with pytest.raises(CheckpointError, match=r"init_from .*shape mismatches"):
+        train(fit_cfg(run, f"init_from={src}", "stage.out_features=4"))
+    assert not run.exists()

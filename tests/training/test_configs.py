@@ -52,10 +52,11 @@ def test_every_option_composes_and_resolves(config_name, group, option, tmp_path
     if config_name == "eval":
         overrides.append("ckpt=some.pt")
     cfg = compose_cfg(overrides, config_name=config_name)
-    # A stage's required upstream inputs (``???``, e.g. stage.tokenizer_ckpt) are the user's to
-    # pass on the command line; nothing else may be left missing.
+    # A stage's required upstream inputs (``???``, e.g. stage.tokenizer_ckpt) and the weights
+    # a fine-tuning starts from (init_from) are the user's to pass on the command line; nothing
+    # else may be left missing.
     for key in OmegaConf.missing_keys(cfg):
-        assert key.startswith("stage."), f"{key} is ??? but is not a stage input"
+        assert key.startswith("stage.") or key == "init_from", f"{key} is ??? but is not an input"
         OmegaConf.update(cfg, key, "upstream.pt")
     resolved = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
     assert resolved["stage"]["name"]
