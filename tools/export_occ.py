@@ -1,7 +1,7 @@
 """Export Img2Occ pseudo labels (Occ3D layout) from a trained checkpoint.
 
     python tools/export_occ.py ckpt=PATH data_root=DIR [version=v1.0-mini] [out=DIR]
-        [split=all|train|val] [device=auto] [batch_size=1]
+        [split=all|train|val] [device=auto] [batch_size=1] [threads=N]
 
 Writes ``<out>/gts/<scene>/<sample_token>/labels.npz`` for every keyframe of the chosen splits
 and ``<out>/export_info.json``; train the tokenizer on them with ``stage.occ_root=<out>``.
@@ -23,6 +23,10 @@ from renderworld.training.stages.img2occ.export import export_pseudo_labels  # n
 @hydra.main(config_path="../configs", config_name="export_occ", version_base=None)
 def main(cfg: DictConfig) -> dict:
     """Run the export and print its summary; returns the files written per split."""
+    if cfg.get("threads"):
+        import torch
+
+        torch.set_num_threads(int(cfg.threads))
     summary = export_pseudo_labels(
         ckpt=cfg.ckpt,
         data_root=cfg.data_root,

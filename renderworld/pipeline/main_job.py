@@ -278,6 +278,7 @@ def _img2occ_steps(p: _Paths) -> list[Step]:
                 f"version={p.version or SIM_VERSION}",
                 f"out={pseudo}",
                 f"device={EXPORT_DEVICE[p.family]}",  # where Img2Occ trained: same labels
+                *(("threads=1",) if p.one_core else ()),
             ),  # fmt: skip
             pseudo,
             depends_on=("img2occ",),

@@ -110,6 +110,7 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
     assert all(s.cores == 1 for s in steps if s.name in shared)
     for n in (camera | gt) - {"pseudo_labels"}:
         assert "trainer.num_threads=1" in steps[names.index(n)].command, n
+    assert "threads=1" in steps[names.index("pseudo_labels")].command
     # Img2Occ is listed right after the fixture's conversion, so it starts once the infos are
     # written (the scheduler never lets a step pass one waiting for cores).
     assert names.index("img2occ") == names.index("infos") + 1
@@ -118,7 +119,7 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
     cfg.experiments = "paper"
     gpu = main_job_steps(cfg, repo)
     assert {s.name for s in gpu if s.cores is not None} <= data
-    assert not any("trainer.num_threads=1" in s.command for s in gpu)
+    assert not any("trainer.num_threads=1" in s.command or "threads=1" in s.command for s in gpu)
     assert not any(a.startswith("init_from=") for s in gpu for a in s.command)
     cfg.experiments = "mini"
     # One world-model evaluation after both trainings: one table with both settings.
