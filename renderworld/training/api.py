@@ -83,7 +83,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
         if ckpt is not None:
             trainer.load_state_dict(ckpt, source=f"checkpoint {str(last)!r}")
         elif init is not None:
-            trainer.init_weights(init, source=f"init_from {str(cfg.init_from)!r}")
+            _init_weights(trainer, init, source=f"init_from {str(cfg.init_from)!r}")
             log.info("%s starts from the weights of %s", stage_name, cfg.init_from)
         # Only now, with everything validated, write into the run directory.
         if info.is_main:
@@ -121,6 +121,16 @@ def _init_checkpoint(cfg: DictConfig, stage_name: str) -> dict[str, Any] | None:
         return load_checkpoint(Path(str(path)), expected_stage=stage_name)
     except CheckpointError as err:
         raise CheckpointError(f"init_from: {err}") from err
+
+
+def _init_weights(trainer: Trainer, ckpt: dict[str, Any], source: str) -> None:
+    """Fill a new run's model from a checkpoint's ``model`` entry (the average, where it was
+    written with an EMA), strict on keys and shapes; restart the run's EMA, if any, there.
+    Optimizer, schedule, step and data order start fresh, as in any new run."""
+    check_state_dict_keys(trainer.model, ckpt["model"], source=source)
+    trainer.model.load_state_dict(ckpt["model"], strict=True)
+    if trainer.ema is not None:
+        trainer.ema.load(ckpt["model"], None)
 
 
 #: Top-level eval keys read by the world_model stage only (configs/eval.yaml).

@@ -209,18 +209,6 @@ class Trainer:
             )
             seed_everything(self.seed + self.info.rank + 7919 * self.step)
 
-    def init_weights(self, ckpt: dict[str, Any], source: str) -> None:
-        """Start from a checkpoint's model weights (``init_from``); strict on keys and shapes.
-
-        The checkpoint's ``model`` entry (the average, where it was written with an EMA) fills
-        the model and, when this run keeps one, restarts the EMA. Optimizer, schedule, step
-        and data order start fresh, as in any new run.
-        """
-        check_state_dict_keys(self.model, ckpt["model"], source=source)
-        self.model.load_state_dict(ckpt["model"], strict=True)
-        if self.ema is not None:
-            self.ema.load(ckpt["model"], None)
-
     def save(self, name: str) -> None:
         """Write ``checkpoints/<name>`` on rank 0 (collective: call on every rank)."""
         state = self.state_dict()
