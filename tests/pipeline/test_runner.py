@@ -108,6 +108,10 @@ def test_main_job_steps_form_a_resumable_dependency_chain(tmp_path):
     shared = {s.name for s in steps if s.cores is not None}
     assert shared == data | camera | gt
     assert all(s.cores == 1 for s in steps if s.name in shared)
+    # The scheduler never lets a step pass one waiting for the whole machine: none is listed
+    # before the last one-core step, so the two chains keep both cores busy to their ends.
+    last_shared = max(names.index(n) for n in shared)
+    assert all(s.cores == 1 for s in steps[:last_shared]), [s.name for s in steps[:last_shared]]
     for n in (camera | gt) - {"pseudo_labels"}:
         assert "trainer.num_threads=1" in steps[names.index(n)].command, n
     assert "threads=1" in steps[names.index("pseudo_labels")].command
