@@ -1,0 +1,137 @@
+"""Which part of a trained pose-warp world model's ego pose costs its forecast: heading or position.
+
+Evaluates a world-model checkpoint with ``tools/eval.py``'s code, once per mode, with the
+predicted future poses [B, S, 3] (x, y, yaw; current ego frame) changed before the forecast:
+
+* ``model``: as predicted (the stage's own row);
+* ``gt_yaw``: the predicted positions, the ground-truth headings (a reference: reads the future);
+* ``gt_xy``: the ground-truth positions, the predicted headings (a reference);
+* ``ctr_yaw``: the predicted positions, headings at the last history step's turn rate
+  (future-free).
+
+Everything else (movers, token network, metrics) is the stage's. Prints the 3D-Occ model row of
+each mode: mIoU, movers' mIoU, L2 and mean heading error at 1 / 2 / 3 s; each mode's full
+evaluation lands in ``<out>/<mode>/``. Score development splits with it, not test splits.
+
+Usage::
+
+    python benchmarks/pose_error_split.py --data-root data/sim_dev --split all \\
+        --tokenizer outputs/demo/tokenizer/checkpoints/last.pt \\
+        --world-model outputs/demo/world_model/checkpoints/last.pt --out outputs/pose_error_split
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import renderworld.training.stages.world_model.pose_warp as wmp  # noqa: E402
+from renderworld.training import evaluate  # noqa: E402
+
+MODES = ("model", "gt_yaw", "gt_xy", "ctr_yaw")
+
+
+def changed_poses(mode: str, poses: torch.Tensor, hist: torch.Tensor, future: torch.Tensor):
+    """[B, S, 3] ``poses`` with the part ``mode`` names replaced (module docstring).
+
+    Args:
+        mode: one of :data:`MODES`.
+        poses: [B, S, 3] predicted (x, y, yaw), metres and radians, current ego frame.
+        hist: [B, H, 3] history poses, the last one the current frame (zeros).
+        future: [B, S, 3] ground-truth future poses.
+    """
+    out = poses.clone()
+    if mode == "gt_yaw":
+        out[..., 2] = future[..., 2].to(out)
+    elif mode == "gt_xy":
+        out[..., :2] = future[..., :2].to(out)
+    elif mode == "ctr_yaw":
+        rate = -hist[:, -2, 2].to(out)  # yaw change over the last history step
+        out[..., 2] = rate[:, None] * torch.arange(1, out.shape[1] + 1, dtype=out.dtype)[None]
+    elif mode != "model":
+        raise ValueError(f"--modes: unknown mode {mode!r}, expected one of {MODES}")
+    return out
+
+
+def _patch(mode: str):
+    """Wrap ``pose_forecast`` so that the model's predicted poses are changed per ``mode``."""
+    original = wmp.pose_forecast
+
+    def pose_forecast(stage, model, batch, setting):
+        predict = model.predict_poses
+
+        def changed(hist, *args, **kwargs):
+            poses, extra = predict(hist, *args, **kwargs)
+            return changed_poses(mode, poses, hist, batch["future_poses"]), extra
+
+        model.predict_poses = changed
+        try:
+            return original(stage, model, batch, setting)
+        finally:
+            del model.predict_poses
+
+    wmp.pose_forecast = pose_forecast
+    return original
+
+
+def _model_row(csv_path: Path) -> dict:
+    with open(csv_path, newline="") as f:
+        for row in csv.DictReader(f):
+            if row.get("setting") == "3D-Occ" and row.get("method") == "model":
+                return row
+    raise ValueError(f"{csv_path}: no 3D-Occ 'model' row")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data-root", required=True)
+    ap.add_argument("--version", default="v1.0-mini")
+    ap.add_argument("--split", default="all", help="dataset.val_split (dev: all)")
+    ap.add_argument("--tokenizer", required=True)
+    ap.add_argument("--world-model", required=True)
+    ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--out", default="outputs/pose_error_split")
+    args = ap.parse_args()
+    for name in ("tokenizer", "world_model"):
+        if not Path(getattr(args, name)).is_file():
+            raise SystemExit(f"--{name.replace('_', '-')}: no file {getattr(args, name)!r}")
+    from hydra import compose, initialize_config_dir
+
+    rows = {}
+    for mode in args.modes:
+        original = _patch(mode)
+        run_dir = Path(args.out).resolve() / mode
+        try:
+            with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+                cfg = compose("eval", overrides=[
+                    "experiment=world_model_mini",
+                    f"dataset.data_root={Path(args.data_root).resolve()}",
+                    f"dataset.version={args.version}", f"dataset.val_split={args.split}",
+                    f"stage.tokenizer_ckpt={Path(args.tokenizer).resolve()}",
+                    f"ckpt={Path(args.world_model).resolve()}",
+                    f"trainer.num_threads={args.threads}", f"run_dir={run_dir}",
+                ])  # fmt: skip
+            evaluate(cfg)
+        finally:
+            wmp.pose_forecast = original
+        rows[mode] = _model_row(run_dir / "world_model_eval.csv")
+    print("| poses | mIoU 1 / 2 / 3 s | movers' mIoU 1 / 2 / 3 s | L2 1 / 2 / 3 s (m) "
+          "| heading error, mean, 1 / 2 / 3 s (deg) |")  # fmt: skip
+    print("|---|---|---|---|---|")
+    for mode, r in rows.items():
+        cols = [" / ".join(f"{float(r[q.format(h)]):.2f}" for h in (1, 2, 3))
+                for q in ("miou_{}s_pct", "movers_miou_{}s_pct", "l2_at_horizon_{}s_m",
+                          "heading_mean_{}s_deg")]  # fmt: skip
+        print(f"| {mode} | " + " | ".join(cols) + " |")
+
+
+if __name__ == "__main__":
+    main()
