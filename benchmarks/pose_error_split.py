@@ -27,18 +27,17 @@ import csv
 import sys
 from pathlib import Path
 
-import torch
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import renderworld.training.stages.world_model.pose_warp as wmp  # noqa: E402
 from renderworld.training import evaluate  # noqa: E402
+from renderworld.world import constant_turn_rate_poses  # noqa: E402
 
 MODES = ("model", "gt_yaw", "gt_xy", "ctr_yaw")
 
 
-def changed_poses(mode: str, poses: torch.Tensor, hist: torch.Tensor, future: torch.Tensor):
+def changed_poses(mode: str, poses, hist, future):
     """[B, S, 3] ``poses`` with the part ``mode`` names replaced (module docstring).
 
     Args:
@@ -53,8 +52,7 @@ def changed_poses(mode: str, poses: torch.Tensor, hist: torch.Tensor, future: to
     elif mode == "gt_xy":
         out[..., :2] = future[..., :2].to(out)
     elif mode == "ctr_yaw":
-        rate = -hist[:, -2, 2].to(out)  # yaw change over the last history step
-        out[..., 2] = rate[:, None] * torch.arange(1, out.shape[1] + 1, dtype=out.dtype)[None]
+        out[..., 2] = constant_turn_rate_poses(hist, out.shape[1])[..., 2].to(out)
     elif mode != "model":
         raise ValueError(f"--modes: unknown mode {mode!r}, expected one of {MODES}")
     return out
