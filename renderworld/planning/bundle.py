@@ -10,7 +10,7 @@ Format (``schema_version`` 2), a plain dict saved with ``torch.save`` and read w
       "world_model": {"kind": "tokens" | "pose_warp",
                       "config": dict (WorldModelConfig.to_dict()), "state_dict": {...},
                       "options": {} (tokens) | {"anchors": str, "movers": str,
-                                  "kinematics": bool, "motion_frames": int,
+                                  "kinematics": bool, "motion_frames": int, "agents": int,
                                   "grid": {"name": str,
                                   "range_min": [3], "range_max": [3], "shape": [3]}}},
     }
@@ -19,8 +19,8 @@ Format (``schema_version`` 2), a plain dict saved with ``torch.save`` and read w
 :class:`renderworld.world.pose.PoseWarpWorldModel` (its pose head's anchors, how its forecast
 moves other road users and the occupancy grid its warps use are the options). Bundles of
 ``schema_version`` 1 (token world models only, no ``kind`` / ``options``) still load; pose-warp
-options without ``movers``, ``kinematics`` or ``motion_frames`` (bundles written before they
-existed) load as ``"static"``, false and 0.
+options without ``movers``, ``kinematics``, ``motion_frames`` or ``agents`` (bundles written
+before they existed) load as ``"static"``, false, 0 and 0.
 
 The tokenizer is rebuilt through a registry (``register_tokenizer``), never by importing a
 class named in the file. Writes are atomic (temp file in the same folder, fsync, rename);
@@ -184,6 +184,7 @@ def _world_model_options(world_model, tokenizer, grid: GridSpec | None) -> tuple
             "movers": world_model.movers,
             "kinematics": world_model.pose.kinematics,
             "motion_frames": world_model.pose.motion_frames,
+            "agents": world_model.pose.agents,
         }
         return "pose_warp", {**options, "grid": _grid_dict(grid)}
     if isinstance(world_model, WorldModel):
@@ -326,8 +327,10 @@ def load_planner(
     where = f"ckpt_path {path}: world_model options"
     if wm_kind == "pose_warp":
         if isinstance(options, dict):  # bundles written before an option existed
-            options = {"movers": "static", "kinematics": False, "motion_frames": 0, **options}
-        _require_keys(options, {"anchors", "movers", "kinematics", "motion_frames", "grid"}, where)
+            options = {"movers": "static", "kinematics": False, "motion_frames": 0, "agents": 0,
+                       **options}  # fmt: skip
+        keys = {"anchors", "movers", "kinematics", "motion_frames", "agents", "grid"}
+        _require_keys(options, keys, where)
         if options["anchors"] not in ANCHORS:
             raise ValueError(
                 f"{where}: anchors: expected one of {ANCHORS}, got {options['anchors']!r}"
@@ -343,6 +346,9 @@ def load_planner(
         frames = options["motion_frames"]
         if not isinstance(frames, int) or isinstance(frames, bool) or frames < 0:
             raise ValueError(f"{where}: motion_frames: expected an int >= 0, got {frames!r}")
+        agents = options["agents"]
+        if not isinstance(agents, int) or isinstance(agents, bool) or agents < 0:
+            raise ValueError(f"{where}: agents: expected an int >= 0, got {agents!r}")
         grid = _grid_of(options["grid"], f"{where}: grid")
     else:
         _require_keys(options, set(), where)
@@ -376,6 +382,7 @@ def load_planner(
                 movers=options["movers"],
                 kinematics=options["kinematics"],
                 motion_frames=options["motion_frames"],
+                agents=options["agents"],
             )
         else:
             world_model = WorldModel(config)

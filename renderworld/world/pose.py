@@ -24,6 +24,7 @@ from renderworld.world.config import WorldModelConfig
 from renderworld.world.model import WorldModel
 from renderworld.world.mover_head import MoverHead
 from renderworld.world.movers import MOVERS
+from renderworld.world.pose_agents import AGENT_FEATURES, agent_features
 from renderworld.world.pose_inputs import (
     BEV_GROUPS,
     align_history,
@@ -73,6 +74,9 @@ class PoseHead(nn.Module):
         motion_frames: the bird's-eye view also holds :func:`motion_channels` of this many
             frames before the current one (0: the current frame only), so that the head sees
             how the others move (a lead car braking, a car cutting in).
+        agents: the head also reads :func:`~renderworld.world.pose_agents.agent_features` of
+            this many tracked movers (0: none): where the nearest road users are and how fast
+            they move.
     """
 
     #: Scale of the raw outputs: metres for x / y, radians for yaw.
@@ -87,6 +91,7 @@ class PoseHead(nn.Module):
         anchors: str = "ctr",
         kinematics: bool = False,
         motion_frames: int = 0,
+        agents: int = 0,
     ):
         super().__init__()
         if history < 2 or steps < 1:
@@ -98,6 +103,9 @@ class PoseHead(nn.Module):
         if not 0 <= motion_frames < history:
             raise ValueError(f"motion_frames: expected 0..{history - 1}, got {motion_frames}")
         self.motion_frames = int(motion_frames)
+        if not isinstance(agents, int) or isinstance(agents, bool) or agents < 0:
+            raise ValueError(f"agents: expected an int >= 0, got {agents!r}")
+        self.agents = agents
         bev_in += self.motion_frames
         n_out = 3 + (1 if anchors == "ctr_cv" else 0)  # (dx, dy, dyaw) [+ CTR-vs-CV logit]
         self.bev = nn.Sequential(
@@ -108,6 +116,7 @@ class PoseHead(nn.Module):
         )  # fmt: skip
         n_in = 4 * history + len(COMMANDS) + hidden
         n_in += kinematic_features(torch.zeros(1, history, 3)).shape[1] if self.kinematics else 0
+        n_in += agents * AGENT_FEATURES
         self.mlp = nn.Sequential(
             nn.Linear(n_in, hidden), nn.GELU(), nn.Linear(hidden, hidden), nn.GELU(),
             nn.Linear(hidden, len(COMMANDS) * steps * n_out),
@@ -117,7 +126,11 @@ class PoseHead(nn.Module):
         self.register_buffer("scale", torch.tensor(self.SCALE), persistent=False)
 
     def forward(
-        self, history_poses: torch.Tensor, command: torch.Tensor, bev: torch.Tensor
+        self,
+        history_poses: torch.Tensor,
+        command: torch.Tensor,
+        bev: torch.Tensor,
+        agents: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Predict the future poses.
 
@@ -126,6 +139,8 @@ class PoseHead(nn.Module):
             command: [B] int64 index into ``COMMANDS`` (the current command).
             bev: [B, C, X, Y] :func:`bev_channels` of the current frame (then, with
                 ``motion_frames``, :func:`motion_channels`).
+            agents: [B, agents * AGENT_FEATURES] :func:`agent_features` when the head reads
+                agents, else None.
 
         Returns:
             (poses [B, S, 3] of the command's mode, modes [B, len(COMMANDS), S, 3]).
@@ -147,6 +162,14 @@ class PoseHead(nn.Module):
         parts = [feats, onehot, self.bev(bev.float())]
         if self.kinematics:
             parts.append(kinematic_features(hp))
+        if self.agents:
+            want = (b, self.agents * AGENT_FEATURES)
+            if agents is None or tuple(agents.shape) != want:
+                raise ValueError(
+                    f"agents: the head reads {self.agents} agents; expected {list(want)}, got "
+                    f"{None if agents is None else tuple(agents.shape)}"
+                )
+            parts.append(agents.float())
         x = torch.cat(parts, dim=1)
         out = self.mlp(x).view(b, len(COMMANDS), self.steps, -1)
         raw = out[..., :3] * self.scale
@@ -220,6 +243,7 @@ class PoseWarpWorldModel(nn.Module):
             its :attr:`mover_head` (:class:`~renderworld.world.mover_head.MoverHead`).
         kinematics: the pose head also reads :func:`kinematic_features` of the history.
         motion_frames: the pose head also reads :func:`motion_channels` of this many frames.
+        agents: the pose head also reads :func:`agent_features` of this many tracked movers.
     """
 
     def __init__(
@@ -230,6 +254,7 @@ class PoseWarpWorldModel(nn.Module):
         movers: str = "static",
         kinematics: bool = False,
         motion_frames: int = 0,
+        agents: int = 0,
     ):
         super().__init__()
         if not isinstance(config, WorldModelConfig):
@@ -246,6 +271,7 @@ class PoseWarpWorldModel(nn.Module):
             anchors=anchors,
             kinematics=kinematics,
             motion_frames=motion_frames,
+            agents=agents,
         )
         self.copy_bonus = nn.Parameter(torch.full((config.num_codebooks,), float(copy_bonus)))
         #: The learned mover motion (``movers="learned"``), else None.
@@ -268,7 +294,8 @@ class PoseWarpWorldModel(nn.Module):
             history_poses: [B, H, 3]; command: [B] int64; current: [B, X, Y, Z] labels of the
                 current frame.
             history: [B, H, X, Y, Z] labels of the history frames (the last is ``current``) and
-                grid: their grid; needed when the pose head reads ``motion_frames``.
+                grid: their grid; needed when the pose head reads ``motion_frames`` or
+                ``agents``.
 
         Raises:
             ValueError: naming ``history`` when the head reads motion and it or ``grid`` is
@@ -284,7 +311,15 @@ class PoseWarpWorldModel(nn.Module):
                 )
             motion = motion_channels(history, history_poses, grid, frames)
             bev = torch.cat([bev, motion.to(bev.device)], dim=1)
-        return self.pose(history_poses, command, bev)
+        agents = None
+        if self.pose.agents:
+            if history is None or grid is None:
+                raise ValueError(
+                    f"history: the pose head reads agents={self.pose.agents}; pass the history "
+                    "frames and their grid"
+                )
+            agents = agent_features(history, history_poses, grid, self.pose.agents)
+        return self.pose(history_poses, command, bev, agents)
 
     def forward(
         self, tokens: torch.Tensor, sequence_poses: torch.Tensor, command: torch.Tensor

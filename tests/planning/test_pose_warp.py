@@ -378,6 +378,28 @@ def test_bundles_keep_a_pose_head_that_reads_motion(tmp_path):
         load_planner(bad)
 
 
+def test_bundles_keep_a_pose_head_that_reads_the_agents(tmp_path):
+    tok, base = make_model(seed=4)
+    wm = PoseWarpWorldModel(base.config, anchors="ctr_cv", agents=3)
+    with torch.no_grad():
+        for p in wm.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    path = save_planner_bundle(tmp_path / "a.pt", tok, wm)
+    assert torch.load(path, weights_only=True)["world_model"]["options"]["agents"] == 3
+    loaded = load_planner(path)
+    assert loaded.world_model.pose.agents == 3
+    req = request()
+    np.testing.assert_array_equal(
+        Planner(tok, wm).plan(req).trajectory, loaded.plan(req).trajectory
+    )
+    # Written before the option existed (no "agents"): a head without it.
+    old = _tampered(tmp_path, lambda d: d["world_model"]["options"].pop("agents"))
+    assert load_planner(old).world_model.pose.agents == 0
+    bad = _tampered(tmp_path, lambda d: d["world_model"]["options"].update(agents=True))
+    with pytest.raises(ValueError, match="agents: expected an int >= 0"):
+        load_planner(bad)
+
+
 def test_schema_1_token_bundles_still_load(tmp_path):
     from tests.planning.test_api import make_planner as token_planner
     from tests.planning.test_api import make_request

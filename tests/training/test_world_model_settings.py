@@ -31,6 +31,8 @@ BASE = ["stage=world_model", "stage.tokenizer_ckpt=tok.pt"]
         ("stage.pose_kinematics=2", "stage.pose_kinematics"),
         ("stage.pose_motion_frames=-1", "stage.pose_motion_frames"),
         ("stage.pose_motion_frames=9", "stage.pose_motion_frames"),
+        ("stage.pose_agents=-1", "stage.pose_agents"),
+        ("stage.pose_agents=2.5", "stage.pose_agents"),
         ("stage.pose_lr_scale=0", "stage.pose_lr_scale"),
         ("stage.pose_lr_scale=-1", "stage.pose_lr_scale"),
         ("stage.pose_warmup_steps=-5", "stage.pose_warmup_steps"),
@@ -82,10 +84,10 @@ def test_the_pose_head_gets_its_kinematics_and_its_own_learning_rate():
     from renderworld.training.optim import default_param_groups
 
     over = ["stage.forecaster=pose_warp", "stage.pose_kinematics=true", "stage.pose_lr_scale=4"]
-    cfg = compose_cfg([*BASE, *over, "stage.pose_motion_frames=2"])
+    cfg = compose_cfg([*BASE, *over, "stage.pose_motion_frames=2", "stage.pose_agents=3"])
     tok = SimpleNamespace(codebook_sizes=(16,), latent_shape=(4, 4))
     model = build_world_model("pose_warp", world_model_config(cfg, tok), cfg)
-    assert model.pose.kinematics and model.pose.motion_frames == 2
+    assert model.pose.kinematics and model.pose.motion_frames == 2 and model.pose.agents == 3
     stage = WorldModelStage(cfg)
     assert stage.lr_scales() == {"pose.": 4.0}
     groups = default_param_groups(model, OptimizerConfig(lr=1e-3), stage.lr_scales())

@@ -68,6 +68,7 @@ class StageSettings:
     movers: str = "static"
     pose_kinematics: bool = False
     pose_motion_frames: int = 0
+    pose_agents: int = 0
     pose_lr_scale: float = 1.0
     pose_warmup_steps: int = 0
     pose_joint_lr_scale: float | None = None
@@ -133,6 +134,9 @@ def stage_settings(cfg: Any) -> StageSettings:
         raise ValueError(
             f"stage.pose_motion_frames: expected an int in 0..{history - 1}, got {motion!r}"
         )
+    agents = s.get("pose_agents") or 0
+    if not isinstance(agents, int) or isinstance(agents, bool) or agents < 0:
+        raise ValueError(f"stage.pose_agents: expected an int >= 0, got {agents!r}")
     lr_scale = _number(s, "pose_lr_scale", 1.0)
     if lr_scale <= 0:
         raise ValueError(f"stage.pose_lr_scale: expected a number > 0, got {lr_scale!r}")
@@ -181,6 +185,7 @@ def stage_settings(cfg: Any) -> StageSettings:
         movers=movers,
         pose_kinematics=kinematics,
         pose_motion_frames=motion,
+        pose_agents=agents,
         pose_lr_scale=lr_scale,
         pose_warmup_steps=warmup,
         pose_joint_lr_scale=joint,
@@ -245,9 +250,9 @@ def build_world_model(
     """:class:`WorldModel` (``"tokens"``) or :class:`PoseWarpWorldModel` (``"pose_warp"``).
 
     ``cfg``: the run config whose ``stage.pose_anchors`` (default ``"ctr"``),
-    ``stage.pose_kinematics`` (default false) and ``stage.pose_motion_frames`` (default 0) the
-    pose head uses and whose ``stage.movers`` (default ``"static"``) the forecast applies
-    (validated by :func:`stage_settings`).
+    ``stage.pose_kinematics`` (default false), ``stage.pose_motion_frames`` (default 0) and
+    ``stage.pose_agents`` (default 0) the pose head uses and whose ``stage.movers`` (default
+    ``"static"``) the forecast applies (validated by :func:`stage_settings`).
     """
     if kind != "pose_warp":
         return WorldModel(config)
@@ -260,6 +265,7 @@ def build_world_model(
         movers=st.movers,
         kinematics=st.pose_kinematics,
         motion_frames=st.pose_motion_frames,
+        agents=st.pose_agents,
     )
 
 

@@ -1,0 +1,98 @@
+"""What the pose head reads of the other road users: tracked positions and velocities."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from renderworld.constants import KEYFRAME_DT
+from renderworld.world import WorldModelConfig
+from renderworld.world.pose import PoseHead, PoseWarpWorldModel
+from renderworld.world.pose_agents import AGENT_FEATURES, agent_features, agent_rows
+from renderworld.world.tracks import MoverTrack
+from tests.world.test_movers import CAR, GRID, PED, VOX, _scene
+
+
+def _track(cls, centroid, velocity, times=(0.0, -0.5, -1.0, -1.5, -2.0), brake=0.0):
+    t = np.array(times)
+    v = np.asarray(velocity, dtype=float)
+    # Positions of a mover at ``velocity`` now that braked at ``brake`` m/s^2 along it.
+    cents = np.asarray(centroid) + t[:, None] * v - 0.5 * brake * (t**2)[:, None] * np.sign(v)
+    moving = bool(np.any(v) or brake)
+    return MoverTrack(cls, np.zeros((2, 2), bool), np.asarray(centroid, float), t, cents,
+                      np.polyfit(t, cents, 1)[0] if moving else np.zeros(2), moving)  # fmt: skip
+
+
+def test_agent_rows_nearest_first_padded_and_parked_cars_stand():
+    far = _track(CAR, (30.0, 0.0), (8.0, 0.0))
+    near = _track(PED, (4.0, -3.0), (0.0, 1.2))
+    parked = _track(CAR, (10.0, 4.0), (0.0, 0.0))
+    rows = agent_rows([far, near, parked], k=4)
+    assert rows.shape == (4, AGENT_FEATURES) and rows.dtype == np.float32
+    np.testing.assert_allclose(rows[0], [0.2, -0.15, 0.0, 0.12, 0.0, 0.12, 1.0, 1.0], atol=1e-6)
+    np.testing.assert_allclose(rows[1], [0.5, 0.2, 0, 0, 0, 0, 0.0, 1.0])  # parked: no speed
+    np.testing.assert_allclose(rows[2, :2], [1.5, 0.0])
+    assert not rows[3].any()  # padding: not present
+    assert agent_rows([far, near], k=1).shape == (1, AGENT_FEATURES)
+
+
+def test_agent_rows_tell_a_braking_lead_car_from_a_cruising_one():
+    cruise = agent_rows([_track(CAR, (12.0, 0.0), (8.0, 0.0))], k=1)[0]
+    brake = agent_rows([_track(CAR, (12.0, 0.0), (4.0, 0.0), brake=3.0)], k=1)[0]
+    np.testing.assert_allclose(cruise[2], cruise[4], atol=1e-6)  # steady: both fits agree
+    # Braking: the last second's speed is below the whole history's.
+    assert brake[4] < brake[2] - 0.05
+
+
+def test_agent_features_track_a_car_and_mirror_with_the_scene():
+    occ, poses = _scene(mover=(16, 10), mover_step=(1, 0), ego_step=0)
+    hist = torch.from_numpy(occ)[None].repeat(2, 1, 1, 1, 1)
+    hp = torch.from_numpy(poses)[None].repeat(2, 1, 1).float()
+    f = agent_features(hist, hp, GRID, k=3)
+    assert f.shape == (2, 3 * AGENT_FEATURES) and f.dtype == torch.float32
+    rows = f[0].view(3, AGENT_FEATURES)
+    # Two cars: the mover (1 voxel per frame along x) is nearer than the parked one.
+    speed = VOX / KEYFRAME_DT / 10.0
+    torch.testing.assert_close(rows[0, 2:6], torch.tensor([speed, 0.0, speed, 0.0]),
+                               atol=1e-4, rtol=0)  # fmt: skip
+    assert rows[1, 2:6].abs().sum() == 0 and rows[:2, 7].tolist() == [1.0, 1.0]
+    assert rows[2].abs().sum() == 0
+    # The mirrored scene (y -> -y): the same agents with y and vy negated.
+    m = agent_features(hist.flip(3), hp * torch.tensor([1.0, -1.0, -1.0]), GRID, k=3)
+    sign = torch.tensor([1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0, 1.0]).repeat(3)
+    torch.testing.assert_close(m[0], f[0] * sign)
+    # Cached: asked again, the same values.
+    torch.testing.assert_close(agent_features(hist, hp, GRID, k=3), f)
+    with pytest.raises(ValueError, match="k: expected an int >= 1"):
+        agent_features(hist, hp, GRID, k=0)
+    with pytest.raises(ValueError, match="history/history_poses: expected"):
+        agent_features(hist, hp[:, :2], GRID, k=2)
+
+
+def test_pose_head_reads_the_agents_and_refuses_a_request_without_them():
+    cfg = WorldModelConfig(
+        codebook_sizes=(8,), token_grid=(4, 4), embed_dim=16, num_heads=2, num_scales=1,
+        layers_per_scale=(1,), history_frames=5, future_frames=2,
+    )  # fmt: skip
+    torch.manual_seed(0)
+    model = PoseWarpWorldModel(cfg, agents=2)
+    assert model.pose.agents == 2
+    with torch.no_grad():
+        model.pose.mlp[-1].weight.normal_()
+    occ, poses = _scene(mover=(16, 10), mover_step=(1, 0), ego_step=0)
+    still_occ, _ = _scene(mover=(16, 10), mover_step=(0, 0), ego_step=0)
+    hp, cmd = torch.from_numpy(poses)[None].float(), torch.tensor([0])
+    moving = torch.from_numpy(occ)[None]
+    still = torch.from_numpy(still_occ)[None]
+    # The same current frame, a car that moved against one that stood: another plan.
+    torch.testing.assert_close(moving[:, -1], still[:, -1])
+    a, _ = model.predict_poses(hp, cmd, moving[:, -1], moving, GRID)
+    b, _ = model.predict_poses(hp, cmd, still[:, -1], still, GRID)
+    assert not torch.equal(a, b)
+    with pytest.raises(ValueError, match="history: the pose head reads agents=2"):
+        model.predict_poses(hp, cmd, moving[:, -1])
+    with pytest.raises(ValueError, match="agents: the head reads 2 agents"):
+        model.pose(hp, cmd, torch.zeros(1, 7, *GRID.shape[:2]))
+    with pytest.raises(ValueError, match="agents: expected an int >= 0"):
+        PoseHead(history=5, steps=2, agents=-1)
