@@ -11,6 +11,7 @@ Format (``schema_version`` 2), a plain dict saved with ``torch.save`` and read w
                       "config": dict (WorldModelConfig.to_dict()), "state_dict": {...},
                       "options": {} (tokens) | {"anchors": str, "movers": str,
                                   "kinematics": bool, "motion_frames": int, "agents": int,
+                                  "pose_heads": int,
                                   "grid": {"name": str,
                                   "range_min": [3], "range_max": [3], "shape": [3]}}},
     }
@@ -19,8 +20,8 @@ Format (``schema_version`` 2), a plain dict saved with ``torch.save`` and read w
 :class:`renderworld.world.pose.PoseWarpWorldModel` (its pose head's anchors, how its forecast
 moves other road users and the occupancy grid its warps use are the options). Bundles of
 ``schema_version`` 1 (token world models only, no ``kind`` / ``options``) still load; pose-warp
-options without ``movers``, ``kinematics``, ``motion_frames`` or ``agents`` (bundles written
-before they existed) load as ``"static"``, false, 0 and 0.
+options without ``movers``, ``kinematics``, ``motion_frames``, ``agents`` or ``pose_heads``
+(bundles written before they existed) load as ``"static"``, false, 0, 0 and 1.
 
 The tokenizer is rebuilt through a registry (``register_tokenizer``), never by importing a
 class named in the file. Writes are atomic (temp file in the same folder, fsync, rename);
@@ -185,6 +186,7 @@ def _world_model_options(world_model, tokenizer, grid: GridSpec | None) -> tuple
             "kinematics": world_model.pose.kinematics,
             "motion_frames": world_model.pose.motion_frames,
             "agents": world_model.pose.agents,
+            "pose_heads": len(getattr(world_model.pose, "members", (world_model.pose,))),
         }
         return "pose_warp", {**options, "grid": _grid_dict(grid)}
     if isinstance(world_model, WorldModel):
@@ -328,8 +330,8 @@ def load_planner(
     if wm_kind == "pose_warp":
         if isinstance(options, dict):  # bundles written before an option existed
             options = {"movers": "static", "kinematics": False, "motion_frames": 0, "agents": 0,
-                       **options}  # fmt: skip
-        keys = {"anchors", "movers", "kinematics", "motion_frames", "agents", "grid"}
+                       "pose_heads": 1, **options}  # fmt: skip
+        keys = {"anchors", "movers", "kinematics", "motion_frames", "agents", "pose_heads", "grid"}
         _require_keys(options, keys, where)
         if options["anchors"] not in ANCHORS:
             raise ValueError(
@@ -349,6 +351,9 @@ def load_planner(
         agents = options["agents"]
         if not isinstance(agents, int) or isinstance(agents, bool) or agents < 0:
             raise ValueError(f"{where}: agents: expected an int >= 0, got {agents!r}")
+        heads = options["pose_heads"]
+        if not isinstance(heads, int) or isinstance(heads, bool) or heads < 1:
+            raise ValueError(f"{where}: pose_heads: expected an int >= 1, got {heads!r}")
         grid = _grid_of(options["grid"], f"{where}: grid")
     else:
         _require_keys(options, set(), where)
@@ -383,6 +388,7 @@ def load_planner(
                 kinematics=options["kinematics"],
                 motion_frames=options["motion_frames"],
                 agents=options["agents"],
+                pose_heads=options["pose_heads"],
             )
         else:
             world_model = WorldModel(config)

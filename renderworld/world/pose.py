@@ -25,6 +25,7 @@ from renderworld.world.model import WorldModel
 from renderworld.world.mover_head import MoverHead
 from renderworld.world.movers import MOVERS
 from renderworld.world.pose_agents import AGENT_FEATURES, agent_features
+from renderworld.world.pose_ensemble import PoseEnsemble
 from renderworld.world.pose_inputs import (
     BEV_GROUPS,
     align_history,
@@ -244,6 +245,9 @@ class PoseWarpWorldModel(nn.Module):
         kinematics: the pose head also reads :func:`kinematic_features` of the history.
         motion_frames: the pose head also reads :func:`motion_channels` of this many frames.
         agents: the pose head also reads :func:`agent_features` of this many tracked movers.
+        pose_heads: how many pose heads (more than one: a
+            :class:`~renderworld.world.pose_ensemble.PoseEnsemble`, each member initialised
+            from its own seed, the global RNG left as one head leaves it).
     """
 
     def __init__(
@@ -255,6 +259,7 @@ class PoseWarpWorldModel(nn.Module):
         kinematics: bool = False,
         motion_frames: int = 0,
         agents: int = 0,
+        pose_heads: int = 1,
     ):
         super().__init__()
         if not isinstance(config, WorldModelConfig):
@@ -265,14 +270,23 @@ class PoseWarpWorldModel(nn.Module):
         #: How the forecast moves other road users (:data:`renderworld.world.movers.MOVERS`).
         self.movers = movers
         self.net = WorldModel(config)
-        self.pose = PoseHead(
-            config.history_frames,
-            config.future_frames,
-            anchors=anchors,
-            kinematics=kinematics,
-            motion_frames=motion_frames,
-            agents=agents,
-        )
+        if not isinstance(pose_heads, int) or isinstance(pose_heads, bool) or pose_heads < 1:
+            raise ValueError(f"pose_heads: expected an int >= 1, got {pose_heads!r}")
+
+        def head() -> PoseHead:
+            return PoseHead(
+                config.history_frames, config.future_frames, anchors=anchors,
+                kinematics=kinematics, motion_frames=motion_frames, agents=agents,
+            )  # fmt: skip
+
+        self.pose: PoseHead | PoseEnsemble = head()
+        if pose_heads > 1:
+            members, seed = [self.pose], torch.initial_seed()
+            with torch.random.fork_rng(devices=[]):
+                for k in range(1, pose_heads):
+                    torch.manual_seed(seed + 7919 * k)
+                    members.append(head())
+            self.pose = PoseEnsemble(members)
         self.copy_bonus = nn.Parameter(torch.full((config.num_codebooks,), float(copy_bonus)))
         #: The learned mover motion (``movers="learned"``), else None.
         self.mover_head = (
@@ -286,6 +300,7 @@ class PoseWarpWorldModel(nn.Module):
         current: torch.Tensor,
         history: torch.Tensor | None = None,
         grid: GridSpec | None = None,
+        members: bool = False,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Future poses [B, S, 3] (and every command's [B, C, S, 3]) from the history poses, the
         current frame and the command.
@@ -296,6 +311,8 @@ class PoseWarpWorldModel(nn.Module):
             history: [B, H, X, Y, Z] labels of the history frames (the last is ``current``) and
                 grid: their grid; needed when the pose head reads ``motion_frames`` or
                 ``agents``.
+            members: each pose head's own prediction instead, [K, B, S, 3] and
+                [K, B, C, S, 3] (K = 1 for a single head), for training each on its loss.
 
         Raises:
             ValueError: naming ``history`` when the head reads motion and it or ``grid`` is
@@ -319,7 +336,12 @@ class PoseWarpWorldModel(nn.Module):
                     "frames and their grid"
                 )
             agents = agent_features(history, history_poses, grid, self.pose.agents)
-        return self.pose(history_poses, command, bev, agents)
+        if not members:
+            return self.pose(history_poses, command, bev, agents)
+        if isinstance(self.pose, PoseEnsemble):
+            return self.pose.members_forward(history_poses, command, bev, agents)
+        poses, modes = self.pose(history_poses, command, bev, agents)
+        return poses[None], modes[None]
 
     def forward(
         self, tokens: torch.Tensor, sequence_poses: torch.Tensor, command: torch.Tensor

@@ -378,25 +378,33 @@ def test_bundles_keep_a_pose_head_that_reads_motion(tmp_path):
         load_planner(bad)
 
 
-def test_bundles_keep_a_pose_head_that_reads_the_agents(tmp_path):
+def test_bundles_keep_pose_heads_that_read_the_agents(tmp_path):
     tok, base = make_model(seed=4)
-    wm = PoseWarpWorldModel(base.config, anchors="ctr_cv", agents=3)
+    wm = PoseWarpWorldModel(base.config, anchors="ctr_cv", agents=3, pose_heads=2)
     with torch.no_grad():
         for p in wm.parameters():
             p.add_(0.05 * torch.randn_like(p))
     path = save_planner_bundle(tmp_path / "a.pt", tok, wm)
-    assert torch.load(path, weights_only=True)["world_model"]["options"]["agents"] == 3
+    options = torch.load(path, weights_only=True)["world_model"]["options"]
+    assert options["agents"] == 3 and options["pose_heads"] == 2
     loaded = load_planner(path)
-    assert loaded.world_model.pose.agents == 3
+    assert loaded.world_model.pose.agents == 3 and len(loaded.world_model.pose.members) == 2
     req = request()
     np.testing.assert_array_equal(
         Planner(tok, wm).plan(req).trajectory, loaded.plan(req).trajectory
     )
-    # Written before the option existed (no "agents"): a head without it.
-    old = _tampered(tmp_path, lambda d: d["world_model"]["options"].pop("agents"))
-    assert load_planner(old).world_model.pose.agents == 0
+    # Written before the options existed: one head without agents.
+    def pop(d):
+        for key in ("agents", "pose_heads"):
+            d["world_model"]["options"].pop(key)
+
+    old = load_planner(_tampered(tmp_path, pop)).world_model.pose
+    assert old.agents == 0 and not hasattr(old, "members")
     bad = _tampered(tmp_path, lambda d: d["world_model"]["options"].update(agents=True))
     with pytest.raises(ValueError, match="agents: expected an int >= 0"):
+        load_planner(bad)
+    bad = _tampered(tmp_path, lambda d: d["world_model"]["options"].update(pose_heads=0))
+    with pytest.raises(ValueError, match="pose_heads: expected an int >= 1"):
         load_planner(bad)
 
 

@@ -129,6 +129,34 @@ def test_the_pose_warm_up_fits_the_pose_head_alone(wm_overrides, tmp_path):
     assert any(not torch.equal(v, model.pose.state_dict()[k]) for k, v in head.items())
 
 
+def test_each_pose_head_of_an_ensemble_trains_on_its_own_loss(wm_overrides, tmp_path):
+    from renderworld.training.stages.world_model.pose_warp import pose_terms
+    from renderworld.world.pose import PoseHead
+
+    over = [*wm_overrides, *POSE, "stage.pose_mirror=true", f"run_dir={tmp_path}"]
+    cfg = compose_cfg([*over, "stage.pose_heads=3"])
+    stage = WorldModelStage(cfg)
+    train_set, _ = stage.build_datasets(cfg)
+    model = stage.build_model(cfg).train()
+    assert len(model.pose.members) == 3
+    batch = next(iter(DataLoader(train_set, batch_size=2)))
+    terms = pose_terms(stage, model, batch)
+    # Each member alone, as a one-head model would score it: the ensemble's loss is their sum.
+    single = stage.build_model(compose_cfg(over)).train()
+    alone = []
+    for m in model.pose.members:
+        assert isinstance(m, PoseHead)
+        single.pose = m
+        alone.append(pose_terms(stage, single, batch))
+    torch.testing.assert_close(terms["pose"], sum(t["pose"] for t in alone))
+    torch.testing.assert_close(terms["pose_l2"], sum(t["pose_l2"] for t in alone) / 3)
+    terms["pose"].backward()
+    for m, t in zip(model.pose.members, alone, strict=True):
+        own = torch.autograd.grad(t["pose"], list(m.parameters()))
+        for p, g in zip(m.parameters(), own, strict=True):
+            torch.testing.assert_close(p.grad, g)  # each gets the gradient it would get alone
+
+
 def test_a_frozen_pose_head_gets_no_gradient_in_the_joint_training(wm_overrides, tmp_path):
     for joint, frozen in ((None, False), (0, True)):
         over = [*POSE, "stage.pose_warmup_steps=2", f"run_dir={tmp_path}"]

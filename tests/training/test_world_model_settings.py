@@ -33,6 +33,8 @@ BASE = ["stage=world_model", "stage.tokenizer_ckpt=tok.pt"]
         ("stage.pose_motion_frames=9", "stage.pose_motion_frames"),
         ("stage.pose_agents=-1", "stage.pose_agents"),
         ("stage.pose_agents=2.5", "stage.pose_agents"),
+        ("stage.pose_heads=0", "stage.pose_heads"),
+        ("stage.pose_heads=true", "stage.pose_heads"),
         ("stage.pose_lr_scale=0", "stage.pose_lr_scale"),
         ("stage.pose_lr_scale=-1", "stage.pose_lr_scale"),
         ("stage.pose_warmup_steps=-5", "stage.pose_warmup_steps"),

@@ -96,3 +96,42 @@ def test_pose_head_reads_the_agents_and_refuses_a_request_without_them():
         model.pose(hp, cmd, torch.zeros(1, 7, *GRID.shape[:2]))
     with pytest.raises(ValueError, match="agents: expected an int >= 0"):
         PoseHead(history=5, steps=2, agents=-1)
+
+
+def test_pose_ensemble_is_the_mean_of_heads_from_their_own_seeds():
+    from renderworld.world.pose_ensemble import PoseEnsemble
+
+    cfg = WorldModelConfig(
+        codebook_sizes=(8,), token_grid=(4, 4), embed_dim=16, num_heads=2, num_scales=1,
+        layers_per_scale=(1,), history_frames=5, future_frames=2,
+    )  # fmt: skip
+    models = {}
+    for k in (1, 3):
+        torch.manual_seed(0)
+        models[k] = PoseWarpWorldModel(cfg, movers="learned", pose_heads=k)
+    one, three = models[1], models[3]
+    # The first member is the one head; the others differ; the rest of the model (the mover
+    # head built after the pose heads) is initialised as with one head.
+    torch.testing.assert_close(three.pose.members[0].state_dict(), one.pose.state_dict())
+    w = [m.bev[0].weight for m in three.pose.members]
+    assert not torch.equal(w[0], w[1]) and not torch.equal(w[1], w[2])
+    torch.testing.assert_close(three.mover_head.state_dict(), one.mover_head.state_dict())
+    with torch.no_grad():
+        for m in three.pose.members:
+            m.mlp[-1].weight.normal_()
+    occ, poses = _scene(ego_step=1)
+    hist = torch.from_numpy(occ)[None]
+    hp, cmd = torch.from_numpy(poses)[None].float(), torch.tensor([1])
+    mean, modes = three.predict_poses(hp, cmd, hist[:, -1], hist, GRID)
+    each, each_modes = three.predict_poses(hp, cmd, hist[:, -1], hist, GRID, members=True)
+    assert each.shape == (3, 1, 2, 3) and each_modes.shape == (3, *modes.shape)
+    torch.testing.assert_close(mean, each.mean(0))
+    assert not torch.allclose(each[0], each[1])
+    single, _ = one.predict_poses(hp, cmd, hist[:, -1], hist, GRID, members=True)
+    assert single.shape == (1, 1, 2, 3)
+    with pytest.raises(ValueError, match="members: expected two or more"):
+        PoseEnsemble([PoseHead(5, 2)])
+    with pytest.raises(ValueError, match="members: their kinematics differ"):
+        PoseEnsemble([PoseHead(5, 2), PoseHead(5, 2, kinematics=True)])
+    with pytest.raises(ValueError, match="pose_heads: expected an int >= 1"):
+        PoseWarpWorldModel(cfg, pose_heads=0)

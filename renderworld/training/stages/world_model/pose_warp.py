@@ -188,7 +188,9 @@ def _code_shape(stage: PoseWarpStage, tokenizer: str | None) -> tuple[int, int, 
 def pose_terms(stage: PoseWarpStage, model: Any, batch: dict, inputs: str = "occ") -> dict:
     """The pose head's loss on a batch (:func:`renderworld.world.pose.pose_loss`: ``pose``,
     ``pose_l2`` in metres, ``pose_yaw`` in radians), with the stage's yaw weight and step
-    weighting; in training with ``pose_mirror`` the mean over the scene and its mirror."""
+    weighting; in training with ``pose_mirror`` the mean over the scene and its mirror. With
+    several pose heads each is scored on its own prediction: ``pose`` is their sum, ``pose_l2``
+    and ``pose_yaw`` their mean."""
     st = stage.settings
     occ, cmd = batch[inputs], batch["command"].long()
     hist_poses, fut_poses = batch["history_poses"].float(), batch["future_poses"].float()
@@ -197,13 +199,23 @@ def pose_terms(stage: PoseWarpStage, model: Any, batch: dict, inputs: str = "occ
     yaw_w = st.pose_yaw_weight
     steps = pose_step_weights(st.pose_step_weighting, st.future)
     history = occ[:, : st.history]
-    pred, _ = model.predict_poses(hist_poses, cmd, current, history, stage.grid)
-    pl = pose_loss(pred, fut_poses, valid, yaw_weight=yaw_w, step_weights=steps)
+
+    def loss(preds: torch.Tensor, gt: torch.Tensor) -> dict:
+        # Each pose head on its own loss: ``pose`` summed over heads (each gets the gradient
+        # it would get alone), the logged errors their mean.
+        terms = [pose_loss(p, gt, valid, yaw_weight=yaw_w, step_weights=steps) for p in preds]
+        out = {k: torch.stack([t[k] for t in terms]).mean() for k in terms[0]}
+        out["pose"] = torch.stack([t["pose"] for t in terms]).sum()
+        return out
+
+    pred, _ = model.predict_poses(hist_poses, cmd, current, history, stage.grid, members=True)
+    pl = loss(pred, fut_poses)
     if model.training and st.pose_mirror:
         # The mirrored scene (y -> -y, left <-> right) is as plausible: twice the pose data.
         m_pred, _ = model.predict_poses(mirror_poses(hist_poses), mirror_command(cmd),
-                                        current.flip(2), history.flip(3), stage.grid)  # fmt: skip
-        m = pose_loss(m_pred, mirror_poses(fut_poses), valid, yaw_weight=yaw_w, step_weights=steps)
+                                        current.flip(2), history.flip(3), stage.grid,
+                                        members=True)  # fmt: skip
+        m = loss(m_pred, mirror_poses(fut_poses))
         pl = {k: 0.5 * (pl[k] + m[k]) for k in pl}
     return pl
 

@@ -69,6 +69,7 @@ class StageSettings:
     pose_kinematics: bool = False
     pose_motion_frames: int = 0
     pose_agents: int = 0
+    pose_heads: int = 1
     pose_lr_scale: float = 1.0
     pose_warmup_steps: int = 0
     pose_joint_lr_scale: float | None = None
@@ -137,6 +138,10 @@ def stage_settings(cfg: Any) -> StageSettings:
     agents = s.get("pose_agents") or 0
     if not isinstance(agents, int) or isinstance(agents, bool) or agents < 0:
         raise ValueError(f"stage.pose_agents: expected an int >= 0, got {agents!r}")
+    heads = s.get("pose_heads", 1)
+    heads = 1 if heads is None else heads
+    if not isinstance(heads, int) or isinstance(heads, bool) or heads < 1:
+        raise ValueError(f"stage.pose_heads: expected an int >= 1, got {heads!r}")
     lr_scale = _number(s, "pose_lr_scale", 1.0)
     if lr_scale <= 0:
         raise ValueError(f"stage.pose_lr_scale: expected a number > 0, got {lr_scale!r}")
@@ -186,6 +191,7 @@ def stage_settings(cfg: Any) -> StageSettings:
         pose_kinematics=kinematics,
         pose_motion_frames=motion,
         pose_agents=agents,
+        pose_heads=heads,
         pose_lr_scale=lr_scale,
         pose_warmup_steps=warmup,
         pose_joint_lr_scale=joint,
@@ -250,9 +256,10 @@ def build_world_model(
     """:class:`WorldModel` (``"tokens"``) or :class:`PoseWarpWorldModel` (``"pose_warp"``).
 
     ``cfg``: the run config whose ``stage.pose_anchors`` (default ``"ctr"``),
-    ``stage.pose_kinematics`` (default false), ``stage.pose_motion_frames`` (default 0) and
-    ``stage.pose_agents`` (default 0) the pose head uses and whose ``stage.movers`` (default
-    ``"static"``) the forecast applies (validated by :func:`stage_settings`).
+    ``stage.pose_kinematics`` (default false), ``stage.pose_motion_frames`` (default 0),
+    ``stage.pose_agents`` (default 0) and ``stage.pose_heads`` (default 1) the pose head uses
+    and whose ``stage.movers`` (default ``"static"``) the forecast applies (validated by
+    :func:`stage_settings`).
     """
     if kind != "pose_warp":
         return WorldModel(config)
@@ -266,6 +273,7 @@ def build_world_model(
         kinematics=st.pose_kinematics,
         motion_frames=st.pose_motion_frames,
         agents=st.pose_agents,
+        pose_heads=st.pose_heads,
     )
 
 
