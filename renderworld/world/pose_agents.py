@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from renderworld.constants import KEYFRAME_DT, OCC3D_CLASSES, GridSpec
-from renderworld.world.tracks import MoverTrack, track_movers
+from renderworld.world.tracks import MoverTrack, fit_velocity, track_movers
 
 __all__ = ["AGENT_FEATURES", "VRU_CLASS_IDS", "agent_features", "agent_rows"]
 
@@ -35,13 +35,6 @@ _CACHE: OrderedDict[bytes, np.ndarray] = OrderedDict()
 _CACHE_SIZE = 50_000
 
 
-def _slope(times: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    if len(times) < 2:
-        return np.zeros(2)
-    t = times - times.mean()
-    return (t[:, None] * (xy - xy.mean(0))).sum(0) / float((t * t).sum())
-
-
 def agent_rows(tracks: list[MoverTrack], k: int) -> np.ndarray:
     """[k, AGENT_FEATURES] float32 rows of the ``k`` tracks nearest the ego (zeros beyond).
 
@@ -54,7 +47,7 @@ def agent_rows(tracks: list[MoverTrack], k: int) -> np.ndarray:
         tr = tracks[i]
         recent = tr.times >= -RECENT_S - 1e-6
         v_all = tr.velocity
-        v_now = _slope(tr.times[recent], tr.centroids[recent]) if tr.moving else np.zeros(2)
+        v_now = fit_velocity(tr.times[recent], tr.centroids[recent]) if tr.moving else np.zeros(2)
         out[row] = (*(tr.centroid / 20.0), *(v_all / 10.0), *(v_now / 10.0),
                     float(tr.cls in VRU_CLASS_IDS), 1.0)  # fmt: skip
     return out

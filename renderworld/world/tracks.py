@@ -37,7 +37,14 @@ import numpy as np
 from renderworld.constants import KEYFRAME_DT, GridSpec
 from renderworld.world.movers import MAX_SPEED_MPS, bev_components
 
-__all__ = ["GATE_M", "GATE_SPEED_MPS", "SPLIT_SPEED_MPS", "MoverTrack", "track_movers"]
+__all__ = [
+    "GATE_M",
+    "GATE_SPEED_MPS",
+    "SPLIT_SPEED_MPS",
+    "MoverTrack",
+    "fit_velocity",
+    "track_movers",
+]
 
 #: Slack of the matching gate, metres (a centroid's quantisation at coarse voxels).
 GATE_M = 1.0
@@ -140,7 +147,7 @@ def _split_merged(frames: list, poses: np.ndarray, grid: GridSpec, dt: float,
     return out
 
 
-def _fit(times: np.ndarray, xy: np.ndarray) -> np.ndarray:
+def fit_velocity(times: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Least-squares slope [2] (m/s) of positions [K, 2] over times [K] (zeros for K < 2)."""
     if len(times) < 2:
         return np.zeros(2)
@@ -202,7 +209,7 @@ def track_movers(
         preds, gates = np.empty((len(current), 2)), np.empty(len(current))
         for i, (cls, _, _) in enumerate(current):
             times, cents = np.array(seen_t[i]), np.array(seen_c[i])
-            vel = _fit(times, cents)
+            vel = fit_velocity(times, cents)
             gap = times[-1] - t_k
             preds[i] = cents[-1] - vel * gap
             speed = GATE_SPEED_MPS if len(times) > 1 else MAX_SPEED_MPS[cls]
@@ -226,7 +233,7 @@ def track_movers(
     voxel = float(grid.voxel_size[0])
     for (cls, cells, c), times, cents in zip(current, seen_t, seen_c):
         times, cents = np.array(times), np.array(cents)
-        vel = _fit(times, cents)
+        vel = fit_velocity(times, cents)
         span = float(times[0] - times[-1])
         moving = bool(span > 0 and np.hypot(*vel) * span >= min_shift_voxels * voxel)
         tracks.append(

@@ -393,6 +393,7 @@ def test_bundles_keep_pose_heads_that_read_the_agents(tmp_path):
     np.testing.assert_array_equal(
         Planner(tok, wm).plan(req).trajectory, loaded.plan(req).trajectory
     )
+
     # Written before the options existed: one head without agents.
     def pop(d):
         for key in ("agents", "pose_heads"):
