@@ -2,7 +2,7 @@
 
 The pose head's bird's-eye view says where the road users are, pooled to a few cells; it does
 not say how fast they move, so a lead car braking looks like one cruising. :func:`agent_features`
-hands the head the :data:`renderworld.world.tracks` state of the nearest movers instead: where
+hands the head the :mod:`renderworld.world.tracks` state of the nearest movers instead: where
 each is, its velocity over the whole history and over its last second (their difference is its
 braking), whether it is a vulnerable road user. History only: nothing here reads the future.
 
