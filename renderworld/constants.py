@@ -22,6 +22,7 @@ __all__ = [
     "OTHERS_ID",
     "OBJECT_CLASS_IDS",
     "MOVABLE_CLASS_IDS",
+    "VULNERABLE_CLASS_IDS",
     "OCC3D_COLORS",
     "LIDARSEG_CLASSES",
     "LIDARSEG_TO_OCC3D",
@@ -93,6 +94,10 @@ MOVABLE_CLASS_IDS: tuple[int, ...] = tuple(
             "motorcycle",
         )  # fmt: skip
     )
+)
+#: Vulnerable road users (pedestrian, bicycle, motorcycle): the planner keeps a wider berth.
+VULNERABLE_CLASS_IDS: tuple[int, ...] = tuple(
+    OCC3D_CLASSES.index(c) for c in ("pedestrian", "bicycle", "motorcycle")
 )
 
 #: RGB colours (uint8) per Occ3D class, in class order; free is white.

@@ -26,7 +26,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from renderworld.constants import KEYFRAME_DT, MOVABLE_CLASS_IDS, OCC3D_CLASSES, GridSpec
+from renderworld.constants import (
+    KEYFRAME_DT,
+    MOVABLE_CLASS_IDS,
+    OCC3D_CLASSES,
+    VULNERABLE_CLASS_IDS,
+    GridSpec,
+)
 from renderworld.world.tracks import MoverTrack, track_movers
 
 __all__ = [
@@ -47,10 +53,6 @@ OBSTACLE_CLASS_IDS: tuple[int, ...] = (*range(11), OCC3D_CLASSES.index("manmade"
 #: Levels whose bottom lies below this height (metres, ego frame z) can hold an obstacle.
 OBSTACLE_TOP_M = 2.0
 _DRIVEABLE = OCC3D_CLASSES.index("driveable_surface")
-#: Road users the ego keeps a wider berth from: pedestrians, cyclists, motorcyclists.
-VULNERABLE_CLASS_IDS = tuple(
-    OCC3D_CLASSES.index(c) for c in ("pedestrian", "bicycle", "motorcycle")
-)
 
 #: ``(tracks, current [X, Y, Z], history_poses [H, 3], grid, steps, dt) -> [M, steps + 1, 2]``
 #: forecast displacements (metres, 0 at the first sample) of the tracked movers.

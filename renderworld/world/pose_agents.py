@@ -17,18 +17,14 @@ from collections import OrderedDict
 import numpy as np
 import torch
 
-from renderworld.constants import KEYFRAME_DT, OCC3D_CLASSES, GridSpec
+from renderworld.constants import KEYFRAME_DT, VULNERABLE_CLASS_IDS, GridSpec
 from renderworld.world.tracks import MoverTrack, fit_velocity, track_movers
 
-__all__ = ["AGENT_FEATURES", "VRU_CLASS_IDS", "agent_features", "agent_rows"]
+__all__ = ["AGENT_FEATURES", "agent_features", "agent_rows"]
 
 #: Values per agent: x / 20, y / 20, vx / 10, vy / 10 (whole history), vx / 10, vy / 10 (last
 #: second), vulnerable road user, present.
 AGENT_FEATURES = 8
-#: Occ3D ids of pedestrians, bicycles and motorcycles.
-VRU_CLASS_IDS: frozenset[int] = frozenset(
-    OCC3D_CLASSES.index(c) for c in ("bicycle", "motorcycle", "pedestrian")
-)
 #: Seconds of history the recent velocity is fitted over.
 RECENT_S = 1.0
 _CACHE: OrderedDict[bytes, np.ndarray] = OrderedDict()
@@ -49,7 +45,7 @@ def agent_rows(tracks: list[MoverTrack], k: int) -> np.ndarray:
         v_all = tr.velocity
         v_now = fit_velocity(tr.times[recent], tr.centroids[recent]) if tr.moving else np.zeros(2)
         out[row] = (*(tr.centroid / 20.0), *(v_all / 10.0), *(v_now / 10.0),
-                    float(tr.cls in VRU_CLASS_IDS), 1.0)  # fmt: skip
+                    float(tr.cls in VULNERABLE_CLASS_IDS), 1.0)  # fmt: skip
     return out
 
 

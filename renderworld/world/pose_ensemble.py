@@ -52,18 +52,13 @@ class PoseEnsemble(nn.Module):
         bev: torch.Tensor,
         agents: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Each member's prediction: (poses [K, B, S, 3], modes [K, B, C, S, 3])."""
+        """Each member's prediction: (poses [K, B, S, 3], modes [K, B, C, S, 3]); inputs as
+        :meth:`renderworld.world.pose.PoseHead.forward`."""
         outs = [m(history_poses, command, bev, agents) for m in self.members]
         return torch.stack([o[0] for o in outs]), torch.stack([o[1] for o in outs])
 
-    def forward(
-        self,
-        history_poses: torch.Tensor,
-        command: torch.Tensor,
-        bev: torch.Tensor,
-        agents: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, *inputs: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
         """The members' mean: (poses [B, S, 3], modes [B, C, S, 3]); inputs as
         :meth:`renderworld.world.pose.PoseHead.forward`."""
-        poses, modes = self.members_forward(history_poses, command, bev, agents)
+        poses, modes = self.members_forward(*inputs)
         return poses.mean(0), modes.mean(0)
