@@ -97,6 +97,10 @@ class CheckConfig:
             each of these many seconds, which reads the jerk of a short brake
             (:func:`renderworld.planning.check.comfort_excess`); off: the test splits lost
             with (1.0, 1.5, 2.0, 2.5) what the development scenes gained (docs/planner.md).
+        progress_along_plan: a candidate's progress is the arc length of its end projected
+            onto the learned plan's path (NAVSIM's progress along the route) instead of the
+            distance it drives, unless the plan is stalled: going straight on where the plan
+            turns makes less progress (chosen on the development splits: docs/planner.md).
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -129,6 +133,7 @@ class CheckConfig:
     path_spacing_m: float = 1.0
     steady_path: bool = True
     comfort_prefixes_s: tuple[float, ...] = ()
+    progress_along_plan: bool = True
 
 
 class PlanPath:
@@ -215,6 +220,8 @@ class Candidates:
         reference_m: the progress (metres) each candidate's EP is measured against: the
             learned plan's own path length; None for a stalled plan (the best collision-free
             on-road candidate's then).
+        path: the learned plan's :class:`PlanPath` (``CheckConfig.progress_along_plan``
+            measures progress along it), or None.
     """
 
     waypoints: np.ndarray
@@ -222,6 +229,7 @@ class Candidates:
     offset_m: np.ndarray
     speed: np.ndarray
     reference_m: float | None = None
+    path: PlanPath | None = None
 
 
 def _brake_waypoints(path, d, v_now, decels, cfg, steps, dt) -> np.ndarray:
@@ -304,4 +312,4 @@ def make_candidates(
             offs += [d] * len(cfg.brake_decels)
             spd += list(cfg.brake_decels)
     reference = None if stalled else float(step_speed.sum() * dt)
-    return Candidates(np.concatenate(wps), kinds, np.array(offs), np.array(spd), reference)
+    return Candidates(np.concatenate(wps), kinds, np.array(offs), np.array(spd), reference, path)

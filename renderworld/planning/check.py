@@ -16,7 +16,9 @@ and the tracked states are scored against the :class:`~renderworld.planning.scen
 * ``EP`` (progress): distance driven over the learned plan's own path length (the model's
   intended progress), clipped to [0, 1]; over the best collision-free on-road candidate's
   when the plan is stalled (:class:`~renderworld.planning.candidates.CheckConfig`); 1 for
-  every candidate when that reference is below ``progress_floor_m``;
+  every candidate when that reference is below ``progress_floor_m``. With
+  ``progress_along_plan`` the distance is the arc length of the candidate's end projected onto
+  the learned plan's path (NAVSIM's progress along the route), unless the plan is stalled;
 * ``TTC``: 0 when, at some step with the ego moving, its box carried on at constant velocity
   and heading for up to ``ttc_horizon_s`` meets a forecast obstacle point ahead of it (within
   30 degrees of its heading) that it does not already touch;
@@ -70,7 +72,8 @@ class CandidateScores:
         waypoints: [N, S, 2] the candidates as proposed, metres, current ego frame.
         states: [N, T, 4] (x, y, yaw, speed) tracked at 10 Hz.
         NC, DAC, EP, TTC, C, score: [N] sub-scores and the aggregate (module docstring).
-        progress_m: [N] distance driven, metres.
+        progress_m: [N] distance driven (or with ``progress_along_plan`` the arc reached along
+            the plan's path), metres.
         first_contact_s: [N] time of the first contact with the forecast (inf: none).
         choice: [N] what the choice maximises: the score less the offset, change and
             discomfort costs (module docstring); all equal to the score where every score is 0.
@@ -236,8 +239,10 @@ def score_candidates(
     progress = np.concatenate(
         [np.zeros((n, 1)), np.hypot(*np.diff(states[..., :2], axis=1).transpose(2, 0, 1))], 1
     ).sum(1) + np.hypot(*states[:, 0, :2].T)
-    nc = np.isinf(first).astype(float)
     ref = cands.reference_m
+    if cfg.progress_along_plan and ref is not None and cands.path is not None:
+        progress = cands.path.project(states[:, -1, :2])
+    nc = np.isinf(first).astype(float)
     if ref is None:  # a stalled plan: the best collision-free on-road candidate's progress
         safe = (nc > 0) & dac
         ref = float(progress[safe].max()) if safe.any() else 0.0

@@ -193,6 +193,7 @@ def _with_steady_path(cands, plan, past, speed, scene, cfg, dt, cruise_speed):
         np.concatenate([cands.offset_m, extra.offset_m[keep]]),
         np.concatenate([cands.speed, extra.speed[keep]]),
         cands.reference_m,
+        cands.path,
     )
 
 

@@ -329,7 +329,8 @@ def test_a_plan_turning_off_the_road_gives_way_to_the_steady_path():
     swerve[:, 2] = np.arctan2(np.gradient(swerve[:, 1]), np.gradient(swerve[:, 0]))
     out = check_plan(occ, poses, swerve, GRID)
     c = out.candidates
-    assert c.kind[c.best].startswith("steady_") and c.DAC[c.best] == 1 and c.EP[c.best] > 0.95
+    assert c.kind[c.best].startswith("steady_") and c.DAC[c.best] == 1
+    assert 0.7 < c.EP[c.best] < 0.95  # progress along the plan's path: it does not swerve
     assert np.abs(out.trajectory[:, 1]).max() < 0.5  # on along the road, at speed
     assert out.trajectory[-1, 0] > 25.0
     alone = check_plan(occ, poses, swerve, GRID, CheckConfig(steady_path=False)).candidates
@@ -401,3 +402,27 @@ def test_however_uncomfortable_a_safe_plan_is_it_is_replaced_only_where_its_disc
     # ... its score, which weighs comfort 2/12, does not: the learned plan is driven as planned.
     assert a.choice.max() - a.score[0] < CheckConfig().plan_margin and b.best == 0
     np.testing.assert_array_equal(scored.trajectory, tap[:, :2].astype(np.float32))
+
+
+
+def test_progress_is_measured_along_the_plans_path():
+    occ, poses = history(road_half_width=40.0)  # open ground: every candidate stays on it
+    t = np.arange(1, 7) * DT
+    yaw = 0.35 * t  # a left turn at 0.35 rad/s, 10 m/s
+    turn = np.stack([np.cumsum(V * DT * np.cos(yaw - 0.175 * DT)),
+                     np.cumsum(V * DT * np.sin(yaw - 0.175 * DT)), yaw], 1)  # fmt: skip
+    along = check_plan(occ, poses, turn, GRID).candidates
+    driven = check_plan(occ, poses, turn, GRID, CheckConfig(progress_along_plan=False)).candidates
+    kinds = np.array(along.kind)
+    straight = np.flatnonzero(kinds == "steady_idm")[0]  # straight on at the plan's speed
+    assert driven.EP[straight] > 0.95 and along.EP[straight] < 0.9  # it leaves the turn
+    assert along.EP[0] > 0.97 and driven.EP[0] > 0.97  # the plan itself makes full progress
+    np.testing.assert_allclose(along.progress_m[0], driven.progress_m[0], atol=0.6)
+    # A stalled plan (the ego stands; its plan creeps sideways, as a standing car's plan can)
+    # keeps the distance driven: its path says nothing about where to go, and the steady path
+    # straight ahead still counts.
+    stand = np.zeros((H, 3))
+    creep = np.stack([np.zeros(6), 0.05 * t, np.full(6, np.pi / 2)], 1)
+    c = check_plan(occ, stand, creep, GRID, cruise_speed=10.0).candidates
+    ahead = np.flatnonzero(np.array(c.kind) == "steady_idm")
+    assert c.progress_m[ahead].max() > 5.0 and c.EP[ahead].max() == 1.0
