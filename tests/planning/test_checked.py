@@ -404,7 +404,6 @@ def test_however_uncomfortable_a_safe_plan_is_it_is_replaced_only_where_its_disc
     np.testing.assert_array_equal(scored.trajectory, tap[:, :2].astype(np.float32))
 
 
-
 def test_progress_is_measured_along_the_plans_path():
     occ, poses = history(road_half_width=40.0)  # open ground: every candidate stays on it
     t = np.arange(1, 7) * DT
