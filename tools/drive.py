@@ -2,6 +2,7 @@
 
     python tools/drive.py [preset=interactions] [planner=PATH/planner.pt]
         [true_movers=true] [check={KNOB: VALUE}] [behaviours=interactions] [max_scenes=50]
+        [scenes=[scene-5059]]
         [camera_planner=PATH/planner.pt img2occ=PATH/last.pt]
         [planners=[log_replay,cv,ctr,rule_based,stop]] [grid=coarse] [out=outputs/drive]
         [record=scene-6000]
@@ -60,7 +61,8 @@ def drive(cfg: DictConfig) -> dict:
 
         torch.set_num_threads(int(cfg.threads))
     t_build = time.perf_counter()
-    worlds = select_worlds(build_worlds(sim), cfg.get("behaviours"), cfg.get("max_scenes"))
+    worlds = select_worlds(build_worlds(sim), cfg.get("behaviours"), cfg.get("max_scenes"),
+                           cfg.get("scenes"))  # fmt: skip
     build_s = time.perf_counter() - t_build
     run = run_closed_loop(worlds, planners, progress=bool(cfg.progress))
     check = self_check(run)
@@ -95,14 +97,23 @@ def drive(cfg: DictConfig) -> dict:
     return {"paths": paths, "self_check": check, "run": run}
 
 
-def select_worlds(worlds: list, behaviours=None, max_scenes=None) -> list:
+def select_worlds(worlds: list, behaviours=None, max_scenes=None, scenes=None) -> list:
     """The scenes of the listed behaviours (``"interactions"``: the five interaction ones), in
-    preset order, at most ``max_scenes`` of them (None: all).
+    preset order, at most ``max_scenes`` of them (None: all); with ``scenes``, only those named.
 
     Raises:
-        ValueError: naming ``behaviours`` for a behaviour no scene of the preset has.
+        ValueError: naming ``behaviours`` for a behaviour no scene of the preset has, or
+            ``scenes`` for a name no scene of the preset has.
     """
     from renderworld.sim.scene import INTERACTIONS
+
+    if scenes:
+        wanted = [str(n) for n in ([scenes] if isinstance(scenes, str) else scenes)]
+        missing = sorted(set(wanted) - {w.name for w in worlds})
+        if missing:
+            raise ValueError(f"scenes: {missing} not in this preset ({len(worlds)} scenes, e.g. "
+                             f"{worlds[0].name if worlds else 'none'})")  # fmt: skip
+        worlds = [w for w in worlds if w.name in set(wanted)]
 
     if behaviours:
         names = list(INTERACTIONS) if behaviours == "interactions" else [str(b) for b in behaviours]

@@ -301,6 +301,11 @@ def test_drive_tool_selects_planner_dev_scenes_and_checker_knobs():
     assert len(select_worlds(worlds, ["cut_in"])) == cut_ins > 0
     with pytest.raises(ValueError, match="behaviours: \\['flying'\\]"):
         select_worlds(worlds, ["cut_in", "flying"])
+    two = [worlds[3].name, worlds[1].name]
+    assert [w.name for w in select_worlds(worlds, scenes=two)] == [worlds[1].name, worlds[3].name]
+    assert [w.name for w in select_worlds(worlds, scenes=worlds[2].name)] == [worlds[2].name]
+    with pytest.raises(ValueError, match="scenes: \\['scene-0'\\] not in this preset"):
+        select_worlds(worlds, scenes=[worlds[0].name, "scene-0"])
     cfg = check_config(OmegaConf.create({"headway": 1.0, "offsets_m": [0.0, 1.0]}))
     assert cfg.headway == 1.0 and cfg.offsets_m == (0.0, 1.0) and cfg.steady_path
     with pytest.raises(ValueError, match="check.head_way: CheckConfig has no such knob"):
