@@ -131,19 +131,9 @@ def check_config(overrides):
     Raises:
         ValueError: naming ``check.<knob>`` for a knob the config does not have.
     """
-    from dataclasses import fields, replace
+    from renderworld.planning.candidates import check_config as planning_check_config
 
-    from omegaconf import OmegaConf
-
-    from renderworld.planning import CheckConfig
-
-    over = OmegaConf.to_container(overrides) if not isinstance(overrides, dict) else overrides
-    names = {f.name for f in fields(CheckConfig)}
-    for key in over:
-        if key not in names:
-            raise ValueError(f"check.{key}: CheckConfig has no such knob (one of {sorted(names)})")
-    over = {k: tuple(v) if isinstance(v, list) else v for k, v in over.items()}
-    return replace(CheckConfig(), **over)
+    return planning_check_config(overrides, "check")
 
 
 def camera_planner(cfg: DictConfig, grid):

@@ -17,7 +17,7 @@ from renderworld.planning.bundle import (
     registered_tokenizers,
     save_planner_bundle,
 )
-from renderworld.planning.candidates import CheckConfig
+from renderworld.planning.candidates import CheckConfig, check_config
 from renderworld.planning.check import CandidateScores
 from renderworld.planning.checked import CheckedPlan, check_plan
 from renderworld.planning.memory import retain_freed_memory
@@ -35,6 +35,7 @@ __all__ = [
     "PlanResult",
     "Planner",
     "PlannerSession",
+    "check_config",
     "check_plan",
     "load_planner",
     "register_tokenizer",

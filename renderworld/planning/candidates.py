@@ -33,7 +33,10 @@ from renderworld.constants import KEYFRAME_DT
 from renderworld.planning.idm import Leaders, idm_arc, leaders, too_close
 from renderworld.planning.scene import ForecastScene
 
-__all__ = ["CheckConfig", "Candidates", "Leaders", "PlanPath", "leaders", "make_candidates"]
+__all__ = [
+    "CheckConfig", "Candidates", "Leaders", "PlanPath", "check_config", "leaders",
+    "make_candidates",
+]  # fmt: skip
 
 _MAX_TURN = np.radians(60.0)  # a path point turning more than this folds the path
 
@@ -135,6 +138,27 @@ class CheckConfig:
     steady_path: bool = True
     comfort_prefixes_s: tuple[float, ...] = ()
     progress_along_plan: bool = False
+
+
+def check_config(overrides, name: str = "check") -> CheckConfig:
+    """A :class:`CheckConfig` with ``overrides`` ({knob: value}; a dict or an OmegaConf
+    mapping, as ``check={headway: 1.0}`` on a command line gives; lists become tuples).
+
+    Raises:
+        ValueError: naming ``<name>.<knob>`` for a knob the config does not have.
+    """
+    from dataclasses import fields
+
+    if not isinstance(overrides, dict):
+        from omegaconf import OmegaConf
+
+        overrides = OmegaConf.to_container(overrides)
+    names = {f.name for f in fields(CheckConfig)}
+    for key in overrides:
+        if key not in names:
+            raise ValueError(f"{name}.{key}: CheckConfig has no such knob (one of {sorted(names)})")
+    return replace(CheckConfig(), **{k: tuple(v) if isinstance(v, list) else v
+                                     for k, v in overrides.items()})  # fmt: skip
 
 
 class PlanPath:

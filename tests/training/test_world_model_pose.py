@@ -414,3 +414,30 @@ def test_a_later_validation_reuses_the_model_free_rows_and_scores_alike(wm_overr
     for k, v in first.items():
         if k.split("/")[0] in MODEL_FREE_METHODS:
             assert v == moved[k] or (math.isnan(v) and math.isnan(moved[k])), k
+
+
+def test_the_evaluations_check_knobs_reach_the_checked_plans(wm_overrides, tmp_path, monkeypatch):
+    from omegaconf import open_dict
+
+    import renderworld.planning.checked as checked
+
+    stage, model, val_set = _stage(wm_overrides, tmp_path)
+    batch = next(iter(DataLoader(val_set, batch_size=2)))
+    seen, plan = [], checked.check_plan
+
+    def spy(*args, **kwargs):
+        seen.append(args[4] if len(args) > 4 else kwargs.get("config"))
+        return plan(*args, **kwargs)
+
+    monkeypatch.setattr(checked, "check_plan", spy)
+    stage.forecast(model, batch, stage.eval_settings[0], None)
+    assert seen and all(c is None for c in seen)  # the planner's defaults
+    seen.clear()
+    with open_dict(stage.cfg):
+        stage.cfg.check = {"plan_margin": 0.5, "offsets_m": [0.0]}  # as check={...} sets it
+    stage.forecast(model, batch, stage.eval_settings[0], None)
+    assert seen and all(c.plan_margin == 0.5 and c.offsets_m == (0.0,) for c in seen)
+    with open_dict(stage.cfg):
+        stage.cfg.check = {"bogus": 1}
+    with pytest.raises(ValueError, match="check.bogus: CheckConfig has no such knob"):
+        stage.forecast(model, batch, stage.eval_settings[0], None)

@@ -330,7 +330,8 @@ def checked_plans(
     stage: PoseWarpStage, model: Any, batch: dict, setting: EvalSetting, poses: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The model's plans checked against its own forecast, as a planner bundle drives them
-    (:func:`renderworld.planning.checked.check_plan`, default knobs).
+    (:func:`renderworld.planning.checked.check_plan`; the planner's default knobs, or those the
+    evaluation's ``check`` sets, e.g. ``tools/eval.py ... check={plan_margin: 0.3}``).
 
     Args:
         stage: the stage (its history length and grid).
@@ -343,6 +344,7 @@ def checked_plans(
         (trajectories [B, S, 2] metres, headings [B, S] radians), current ego frame, on the
         device and in the dtype of ``poses``.
     """
+    from renderworld.planning.candidates import check_config
     from renderworld.planning.checked import check_plan
     from renderworld.planning.scene import model_forecaster
 
@@ -351,7 +353,10 @@ def checked_plans(
     hist = batch["history_poses"].double().cpu().numpy()
     plan = poses.double().cpu().numpy()
     movers = model_forecaster(model)
-    out = [check_plan(o, hp, p, stage.grid, movers=movers) for o, hp, p in zip(occ, hist, plan)]
+    knobs = stage.cfg.get("check") if hasattr(stage.cfg, "get") else None
+    config = check_config(knobs) if knobs else None
+    out = [check_plan(o, hp, p, stage.grid, config, movers=movers)
+           for o, hp, p in zip(occ, hist, plan)]  # fmt: skip
     traj = torch.from_numpy(np.stack([c.trajectory for c in out])).to(poses)
     yaws = torch.from_numpy(np.stack([c.yaws for c in out])).to(poses)
     return traj, yaws
