@@ -28,6 +28,7 @@ import hydra  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from renderworld.constants import get_grid  # noqa: E402
+from renderworld.planning.candidates import check_config  # noqa: E402
 from renderworld.sim import build_worlds  # noqa: E402
 from renderworld.sim.closed_loop import (  # noqa: E402
     make_bundle_planners,
@@ -123,17 +124,6 @@ def select_worlds(worlds: list, behaviours=None, max_scenes=None, scenes=None) -
             raise ValueError(f"behaviours: {unknown} not in this preset's {sorted(known)}")
         worlds = [w for w in worlds if w.spec.behaviour in set(names)]
     return worlds if max_scenes is None else worlds[: int(max_scenes)]
-
-
-def check_config(overrides):
-    """A :class:`~renderworld.planning.CheckConfig` with ``overrides`` ({knob: value}).
-
-    Raises:
-        ValueError: naming ``check.<knob>`` for a knob the config does not have.
-    """
-    from renderworld.planning.candidates import check_config as planning_check_config
-
-    return planning_check_config(overrides, "check")
 
 
 def camera_planner(cfg: DictConfig, grid):

@@ -353,7 +353,7 @@ def checked_plans(
     hist = batch["history_poses"].double().cpu().numpy()
     plan = poses.double().cpu().numpy()
     movers = model_forecaster(model)
-    knobs = stage.cfg.get("check") if hasattr(stage.cfg, "get") else None
+    knobs = stage.cfg.get("check")  # tools/eval.py check={...}; absent in training
     config = check_config(knobs) if knobs else None
     out = [check_plan(o, hp, p, stage.grid, config, movers=movers)
            for o, hp, p in zip(occ, hist, plan)]  # fmt: skip
