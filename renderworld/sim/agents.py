@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["Path", "Trajectory", "rects_overlap", "arc_path", "DT_MOTION"]
+__all__ = ["Path", "Trajectory", "rects_overlap", "arc_path", "transition_arc", "DT_MOTION"]
 
 DT_MOTION = 0.02  # seconds between trajectory samples
 
@@ -63,22 +63,90 @@ class Path:
         return self.s[i], np.sqrt(d2[np.arange(len(xy)), i])
 
 
-def arc_path(start, heading: float, pieces: list[tuple[str, float, float]]) -> np.ndarray:
+def transition_arc(radius: float, angle: float, transition: float, ds: float = 0.05):
+    """A turn whose curvature ramps linearly (clothoids) into and out of a circular arc.
+
+    Args:
+        radius: the arc's radius, metres (the tightest of the turn).
+        angle: signed total turn, radians (left > 0), 0 < |angle| < 170 degrees.
+        transition: length of each clothoid, metres (> 0).
+        ds: integration step, metres.
+
+    Returns:
+        (points [N, 2] from the origin heading +x, shift): ``shift`` is how much farther from
+        the start the crossing of the entry and exit tangents lies than a plain arc's (metres).
+    """
+    a = abs(angle)
+    if not 0.0 < a < np.deg2rad(170.0) or transition <= 0.0 or transition > radius * a:
+        raise ValueError(
+            f"transition_arc: need 0 < |angle| < 170 deg and 0 < transition <= radius * |angle|, "
+            f"got angle {np.rad2deg(angle):.1f} deg, transition {transition} m, radius {radius} m"
+        )
+    length = radius * a + transition
+    s = np.linspace(0.0, length, max(int(np.ceil(length / ds)), 2) + 1)
+    kappa = np.minimum(1.0, np.minimum(s, length - s) / transition) / radius
+    h = np.concatenate([[0.0], np.cumsum(0.5 * (kappa[1:] + kappa[:-1]) * np.diff(s))])
+    h *= angle / h[-1]  # signed, and exact at the end despite the quadrature
+    mid = 0.5 * (h[1:] + h[:-1])
+    xy = np.concatenate(
+        [
+            np.zeros((1, 2)),
+            np.cumsum(np.diff(s)[:, None] * np.stack([np.cos(mid), np.sin(mid)], -1), 0),
+        ]
+    )
+    x_cross = xy[-1, 0] - xy[-1, 1] * np.cos(angle) / np.sin(angle)
+    return xy, float(x_cross - radius * np.tan(a / 2))
+
+
+def arc_path(
+    start, heading: float, pieces: list[tuple[str, float, float]], transition: float = 0.0
+) -> np.ndarray:
     """Waypoints [P, 2] of straight and circular pieces.
 
     Args:
         start: (x, y) metres.
         heading: initial heading, radians.
         pieces: ``("line", length, 0)`` or ``("arc", radius, signed_angle)`` (left turn > 0).
+        transition: metres of clothoid into and out of every arc (0: the curvature jumps). The
+            arc keeps its radius and its entry and exit lines; the turn starts ``shift`` earlier
+            and ends ``shift`` later on them (:func:`transition_arc`), so each arc must sit
+            between two lines; where one is shorter than the shift, the transition shortens.
     """
+    pieces = [list(p) for p in pieces]
+    turns = {}
+    if transition > 0.0:
+        for i, (kind, radius, angle) in enumerate(pieces):
+            if kind != "arc":
+                continue
+            near = [pieces[j] for j in (i - 1, i + 1) if 0 <= j < len(pieces)]
+            if len(near) < 2 or any(p[0] != "line" for p in near):
+                raise ValueError(f"arc_path: arc {i} needs a line on both sides for a transition")
+            room = min(p[1] for p in near)
+            length = min(transition, radius * abs(angle))
+            for _ in range(8):  # a short line gets a shorter transition (shift ~ length / 2)
+                xy, shift = transition_arc(radius, angle, length)
+                if shift < room:
+                    break
+                length *= 0.9 * room / shift
+            else:
+                raise ValueError(f"arc_path: arc {i} has no room for a transition ({room} m)")
+            for p in near:
+                p[1] -= shift
+            turns[i] = xy
     pts = [np.asarray(start, dtype=np.float64)]
     h = float(heading)
-    for kind, a, b in pieces:
+    for i, (kind, a, b) in enumerate(pieces):
         p = pts[-1]
         if kind == "line":
             n = max(int(a / 2.0), 1)
             for k in range(1, n + 1):
                 pts.append(p + (a * k / n) * np.array([np.cos(h), np.sin(h)]))
+        elif i in turns:
+            rot = np.array([[np.cos(h), -np.sin(h)], [np.sin(h), np.cos(h)]])
+            pts.extend(p + turns[i][10::10] @ rot.T)
+            if len(turns[i]) % 10 != 1:
+                pts.append(p + rot @ turns[i][-1])
+            h += b
         else:
             radius, angle = a, b
             side = np.sign(angle)

@@ -26,7 +26,13 @@ __all__ = [
     "ego_trajectory",
     "ego_box_at",
     "EGO_CENTRE_OFFSET",
+    "TURN_TRANSITION_M",
+    "CURVE_TRANSITION_M",
 ]
+
+# Clothoid lengths into and out of every arc (the curvature ramps, as steering and road design do):
+TURN_TRANSITION_M = 6.0  # junction turns: about 1 s of steering at the 5.5 m/s turning speed
+CURVE_TRANSITION_M = 20.0  # road curves (radius 45-70 m), driven at cruising speed
 
 
 def ego_box_at(xy, yaw) -> tuple[np.ndarray, np.ndarray]:
@@ -78,8 +84,8 @@ def build_roads(spec: SceneSpec, junction_x: float, rng: np.random.Generator) ->
     if spec.kind == "curve":
         angle = np.deg2rad(rng.uniform(60, 90)) * rng.choice([-1.0, 1.0])
         radius = rng.uniform(45, 70)
-        pts = arc_path((-far, 0.0), 0.0, [("line", far + junction_x, 0), ("arc", radius, angle),
-                                           ("line", far, 0)])  # fmt: skip
+        pieces = [("line", far + junction_x, 0), ("arc", radius, angle), ("line", far, 0)]
+        pts = arc_path((-far, 0.0), 0.0, pieces, transition=CURVE_TRANSITION_M)
         return RoadNetwork([Road(pts, **mk)])
     hw = Road(np.zeros((2, 2)), **mk).half_width
     a_end = far if spec.kind == "intersection" else junction_x
@@ -120,7 +126,7 @@ def plan_ego(spec: SceneSpec, duration: float, rng: np.random.Generator) -> EgoP
     if left or spec.behaviour == "turn_right":
         sign = 1.0 if left else -1.0
         pieces = [("line", approach, 0), ("arc", r_turn, sign * np.pi / 2), ("line", tail, 0)]
-        path = Path(arc_path((0.0, -o), 0.0, pieces))
+        path = Path(arc_path((0.0, -o), 0.0, pieces, transition=TURN_TRANSITION_M))
         turn_window = (approach - 15.0, approach + r_turn * np.pi / 2 + 10.0)
     else:
         path = Path(np.array([[0.0, -o], [tail, -o]]))

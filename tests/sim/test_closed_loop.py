@@ -14,6 +14,7 @@ from renderworld.planning import load_planner, register_tokenizer, save_planner_
 from renderworld.sim import build_world, build_worlds
 from renderworld.sim.closed_loop import (
     BundlePlanner,
+    ClosedLoopRun,
     EgoState,
     KinematicLimits,
     OccupancyRenderer,
@@ -82,6 +83,28 @@ class _Fixed:
     def plan(self, obs):
         self.seen.append(obs)
         return self.answer(obs) if callable(self.answer) else self.answer
+
+
+def test_self_check_reads_ep_to_a_tolerance_and_names_the_scene():
+    def row(ep, **kw):
+        r = {
+            "planner": "log_replay",
+            "scene": "scene-1",
+            "behaviour": "turn_left",
+            "end": "scene_end",
+            "collision": False,
+            "collided_with": "",
+            "DAC": 1.0,
+            "EP": ep,
+        }
+        return {**r, **kw}  # fmt: skip
+
+    run = ClosedLoopRun(rows=[row(1.0), row(1.0 - 1e-6, scene="scene-2")])
+    assert self_check(run) == []  # millimetres short of the log over a stop mid-turn
+    run.rows += [row(0.999, scene="scene-3"), row(1.0, scene="scene-4", DAC=0.0)]
+    bad = self_check(run)
+    assert len(bad) == 2 and bad[0].startswith("scene-3") and bad[1].startswith("scene-4")
+    assert self_check(run, planner="rule_based") == []
 
 
 def test_reference_planners_meet_the_bars(interactions):

@@ -12,8 +12,10 @@ from renderworld.constants import (
     FUTURE_FRAMES,
     KEYFRAME_DT,
 )
+from renderworld.planning.comfort import comfort_violations
 from renderworld.sim import EffectsSpec, SceneSpec, SimConfig, build_world, simulate
-from renderworld.sim.agents import rects_overlap
+from renderworld.sim.agents import Path, arc_path, rects_overlap, transition_arc
+from renderworld.sim.layout import TURN_TRANSITION_M
 from renderworld.sim.traffic import ego_route
 from tools.make_fixtures import config_from_preset
 
@@ -69,6 +71,53 @@ def test_ego_speed_profiles_are_plausible(kind, behaviour):
     assert lateral.max() < 4.0  # |lateral acceleration| < 4 m/s^2
     if behaviour == "stop_and_go":
         assert v.min() < 0.05 and v[-1] > 1.0  # it stops and goes again
+
+
+@pytest.mark.parametrize("angle", [np.pi / 2, -np.pi / 2, np.deg2rad(60)])
+def test_transition_keeps_the_arcs_lines_and_ramps_its_curvature(angle):
+    pieces = [("line", 30.0, 0), ("arc", 9.0, angle), ("line", 40.0, 0)]
+    plain, eased = Path(arc_path((0, 0), 0.0, pieces)), Path(arc_path((0, 0), 0.0, pieces, 6.0))
+    np.testing.assert_allclose(eased.xy[-1], plain.xy[-1], atol=1e-6)  # same exit line and end
+    np.testing.assert_allclose(eased.heading[-1], plain.heading[-1], atol=1e-6)
+
+    def kappa(path):  # curvature, 1/m, every 0.2 m
+        return np.gradient(path.heading, path.s)
+
+    def per_metre(path):  # the largest change of curvature over 1 m
+        k = kappa(path)
+        return np.abs(k[5:] - k[:-5]).max()
+
+    # the plain arc's curvature jumps to 1/9 within a metre; the eased one climbs over 6 m
+    assert per_metre(plain) > 0.08 and per_metre(eased) < 0.03
+    mid = np.abs(eased.heading - angle / 2) < abs(angle) / 6  # the middle third of the turn
+    assert np.median(np.abs(kappa(eased)[mid])) == pytest.approx(1 / 9.0, rel=0.1)  # the radius
+
+
+def test_transition_is_refused_where_it_cannot_fit():
+    with pytest.raises(ValueError, match="transition"):
+        transition_arc(9.0, np.pi / 2, 20.0)  # longer than the arc itself
+    with pytest.raises(ValueError, match="line on both sides"):
+        arc_path((0, 0), 0.0, [("arc", 9.0, 1.0), ("line", 10.0, 0)], transition=6.0)
+    # a short approach gets a shorter transition instead of an error
+    xy = arc_path((0, 0), 0.0, [("line", 1.0, 0), ("arc", 9.0, 1.0), ("line", 10.0, 0)], 6.0)
+    assert np.isfinite(xy).all() and len(xy) > 3
+
+
+@pytest.mark.parametrize("behaviour", ["turn_left", "turn_right"])
+def test_logged_turns_are_within_navsim_comfort(behaviour):
+    """The scripted ego steers into a turn (clothoids), as a driver does: its log meets every
+    NAVSIM comfort bound. With the curvature jumping onto the arc, every logged turn failed
+    the yaw-acceleration bound."""
+    assert TURN_TRANSITION_M > 0
+    for seed in range(3):
+        spec = SceneSpec(kind="intersection", behaviour=behaviour, speed=8.0)
+        plan, *_ = ego_route(spec, 24, seed, 0)
+        t = np.arange(0.0, 11.5, 0.1)
+        xy, yaw = plan.trajectory.pose(t)
+        v = np.array([plan.trajectory.speed(x) for x in t])
+        states = np.concatenate([xy, yaw[:, None], v[:, None]], 1)
+        assert np.rad2deg(abs(yaw[-1] - yaw[0])) > 80  # it turned
+        assert comfort_violations(states) == dict.fromkeys(comfort_violations(states), 0), seed
 
 
 @pytest.mark.parametrize("kind, behaviour", [("intersection", "turn_left"), ("straight", "cruise")])
