@@ -56,6 +56,8 @@ class CheckConfig:
         idm_min_accel: IDM's braking is clipped here, m/s^2 (negative).
         corridor_margin_m: corridor half-width beyond the ego's, metres.
         ramp_m: path length over which a lateral offset is reached, metres (at least).
+        quintic_ramp: the offset is reached along a quintic smoothstep instead of a cubic one:
+            no curvature jump where the offset starts and ends.
         ramp_s: ... and at least the distance the ego covers in this many seconds at its
             current speed (a fast car changes lane over a longer path).
         extend_m: straight extension of the path beyond the plan's last waypoint, metres.
@@ -118,6 +120,7 @@ class CheckConfig:
     corridor_margin_m: float = 0.3
     ramp_m: float = 12.0
     ramp_s: float = 0.0
+    quintic_ramp: bool = False
     extend_m: float = 60.0
     box_margin_m: float = 0.2
     vulnerable_margin_m: float = 1.0
@@ -223,12 +226,13 @@ class PlanPath:
         h = self.heading[k]
         return self.xy[k] + u * np.stack([np.cos(h), np.sin(h)], -1), h
 
-    def offset(self, s: np.ndarray, d: float, ramp_m: float) -> np.ndarray:
-        """Positions [..., 2] at ``s`` shifted ``d`` metres to the left, reached smoothly (a
-        smoothstep over the first ``ramp_m`` metres)."""
+    def offset(self, s: np.ndarray, d: float, ramp_m: float, quintic: bool = False) -> np.ndarray:
+        """Positions [..., 2] at ``s`` shifted ``d`` metres to the left, reached smoothly over
+        the first ``ramp_m`` metres: a cubic smoothstep, or (``quintic``) a quintic one, whose
+        curvature starts and ends at 0 (the wheel is turned, not jumped)."""
         xy, h = self.at(s)
         u = np.clip(np.asarray(s) / max(ramp_m, 1e-6), 0.0, 1.0)
-        w = d * u * u * (3 - 2 * u)
+        w = d * (u * u * u * (10.0 + u * (6.0 * u - 15.0)) if quintic else u * u * (3 - 2 * u))
         return xy + w[..., None] * np.stack([-np.sin(h), np.cos(h)], -1)
 
 
@@ -264,7 +268,7 @@ def _brake_waypoints(path, d, v_now, decels, cfg, steps, dt) -> np.ndarray:
     t_stop = v_now / a
     tt = np.minimum(t[None], t_stop)
     s = v_now * tt - 0.5 * a * tt * tt
-    return path.offset(s, d, cfg.ramp_m)
+    return path.offset(s, d, cfg.ramp_m, cfg.quintic_ramp)
 
 
 def make_candidates(
@@ -322,12 +326,18 @@ def make_candidates(
             s_cap = s_plan
         # The learned waypoints themselves, exactly, where nothing changed them.
         as_planned = d == 0 and s_cap is s_plan and not (path.folded or path.thinned)
-        wps.append(plan[None] if as_planned else path.offset(s_cap, d, cfg.ramp_m)[None])
+        wps.append(
+            plan[None] if as_planned else path.offset(s_cap, d, cfg.ramp_m, cfg.quintic_ramp)[None]
+        )
         kinds.append("plan")
         offs.append(d)
         spd.append(top)
         if targets:
-            wps.append(path.offset(idm_arc(speed, targets, lead, cfg, steps, dt), d, cfg.ramp_m))
+            wps.append(
+                path.offset(
+                    idm_arc(speed, targets, lead, cfg, steps, dt), d, cfg.ramp_m, cfg.quintic_ramp
+                )
+            )
             kinds += ["idm"] * len(targets)
             offs += [d] * len(targets)
             spd += targets

@@ -113,6 +113,22 @@ def test_paths_and_config_are_validated():
     assert CheckConfig().offsets_m[0] == 0.0  # the learned path itself comes first
 
 
+@pytest.mark.parametrize("quintic", [False, True])
+def test_offsets_are_reached_over_the_ramp_and_the_quintic_one_starts_straight(quintic):
+    path = PlanPath(np.array([[0.0, 0.0], [30.0, 0.0]]), extend_m=10.0)
+    s = np.arange(0.0, 16.0, 0.5)
+    y = path.offset(s, 2.0, 12.0, quintic)[:, 1]
+    assert y[0] == 0.0 and np.all(np.diff(y) >= 0) and np.allclose(y[s >= 12.0], 2.0)
+    assert y[s == 6.0][0] == pytest.approx(1.0)  # half way at half the ramp (both are symmetric)
+    y0 = path.offset(np.array([0.0, 0.1, 0.2]), 2.0, 12.0, quintic)[:, 1]
+    curvature_start = (y0[2] - 2 * y0[1] + y0[0]) / 0.01  # second difference, 1/m
+    cubic_start = 6 * 2.0 / 12.0**2  # the cubic's d'' at 0
+    if quintic:
+        assert abs(curvature_start) < 0.15 * cubic_start
+    else:
+        assert curvature_start > 0.5 * cubic_start
+
+
 def test_a_new_plan_starts_on_the_previous_one_and_ends_on_its_own():
     from renderworld.planning.checked import blend_with_previous
 
