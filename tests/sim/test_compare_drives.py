@@ -1,0 +1,82 @@
+"""Paired comparison of two closed-loop runs (closed_loop.compare, tools/compare_drives.py)."""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+from omegaconf import OmegaConf
+
+from renderworld.sim.closed_loop.compare import compare_runs, comparison_markdown, load_run
+from tools.compare_drives import compare
+
+
+def write_run(path, rows):
+    """A closed_loop.csv of (scene, behaviour, planner, PDMS, at_fault) rows."""
+    path.mkdir(parents=True, exist_ok=True)
+    recs = []
+    for scene, beh, planner, pdms, fault in rows:
+        recs.append({"scene": scene, "behaviour": beh, "planner": planner, "PDMS": pdms,
+                     "EP": pdms, "TTC": 1.0, "C": 1.0, "NC": 0.0 if fault else 1.0, "DAC": 1.0,
+                     "at_fault_collision": fault, "off_road": False})  # fmt: skip
+    pd.DataFrame(recs).to_csv(path / "closed_loop.csv", index=False)
+    return path
+
+
+@pytest.fixture
+def runs(tmp_path):
+    wm, lb = "world_model", "lead_brake"
+    a = write_run(tmp_path / "a", [
+        ("s1", "cut_in", wm, 0.8, False), ("s2", "cut_in", wm, 0.0, True),
+        ("s3", lb, wm, 0.9, False), ("s4", lb, wm, 0.5, False),
+        ("s1", "cut_in", "rule_based", 1.0, False),
+    ])  # fmt: skip
+    b = write_run(tmp_path / "b", [
+        ("s1", "cut_in", wm, 0.8, False), ("s2", "cut_in", wm, 0.7, False),
+        ("s3", lb, wm, 0.6, False), ("s5", lb, wm, 1.0, False),
+    ])  # fmt: skip
+    return a, b
+
+
+def test_scenes_are_paired_and_counted_per_behaviour(runs):
+    a, b = runs
+    cmp = compare_runs(load_run(a, "world_model", "a"), load_run(b, "world_model", "b"), top=2)
+    assert cmp["scenes"] == 3 and cmp["only_a"] == ["s4"] and cmp["only_b"] == ["s5"]
+    o = cmp["overall"]
+    assert o["PDMS_a"] == pytest.approx((0.8 + 0.0 + 0.9) / 3)
+    assert o["PDMS_b"] == pytest.approx((0.8 + 0.7 + 0.6) / 3)
+    assert (o["up"], o["down"]) == (1, 1)  # s2 up, s3 down, s1 the same
+    assert (o["at_fault_collision_a"], o["at_fault_collision_b"]) == (1, 0)
+    assert cmp["behaviours"]["cut_in"]["n"] == 2 and cmp["behaviours"]["lead_brake"]["n"] == 1
+    assert [m[0] for m in cmp["moved"]] == ["s2", "s3"]  # largest change first, unchanged left out
+    md = comparison_markdown(cmp)
+    assert "| all | 3 |" in md and "s2 (cut_in): 0.000 → 0.700" in md and "s4" in md
+
+
+def test_the_tool_prints_and_writes_the_tables_and_compares_two_planners(runs, tmp_path, capsys):
+    a, b = runs
+    out = tmp_path / "cmp.md"
+    cfg = OmegaConf.create({"a": str(a), "b": str(a / "closed_loop.csv"), "planner": "world_model",
+                            "planner_b": "rule_based", "top": 5, "out": str(out)})  # fmt: skip
+    res = compare(cfg)
+    assert res["comparison"]["scenes"] == 1  # rule_based drove s1 only
+    assert out.read_text().startswith("| scenes |") and "rule_based" in capsys.readouterr().out
+
+
+def test_bad_input_names_the_run(runs, tmp_path):
+    a, b = runs
+    with pytest.raises(FileNotFoundError, match="b: no closed_loop.csv"):
+        load_run(tmp_path / "nowhere", "world_model", "b")
+    with pytest.raises(ValueError, match=r"no rows of planner 'camera'.*rule_based"):
+        load_run(a, "camera", "a")
+    other = write_run(tmp_path / "c", [("z9", "cut_in", "world_model", 1.0, False)])
+    with pytest.raises(ValueError, match="share no scene"):
+        compare_runs(load_run(a, "world_model"), load_run(other, "world_model"))
+    clash = write_run(tmp_path / "d", [("s1", "ped_crossing", "world_model", 1.0, False)])
+    with pytest.raises(ValueError, match="different behaviours"):
+        compare_runs(load_run(a, "world_model"), load_run(clash, "world_model"))
+    (tmp_path / "e").mkdir()
+    pd.DataFrame({"scene": ["s1"], "planner": ["world_model"]}).to_csv(
+        tmp_path / "e" / "closed_loop.csv", index=False
+    )
+    with pytest.raises(ValueError, match="a: .* lacks columns"):
+        load_run(tmp_path / "e", "world_model", "a")
