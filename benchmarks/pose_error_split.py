@@ -7,7 +7,9 @@ predicted future poses [B, S, 3] (x, y, yaw; current ego frame) changed before t
 * ``gt_yaw``: the predicted positions, the ground-truth headings (a reference: reads the future);
 * ``gt_xy``: the ground-truth positions, the predicted headings (a reference);
 * ``ctr_yaw``: the predicted positions, headings at the last history step's turn rate
-  (future-free).
+  (future-free);
+* ``path_yaw``: the predicted positions, headings along the predicted path (at each point the
+  mean direction of the chords before and after it; future-free).
 
 Everything else (movers, token network, metrics) is the stage's. Prints the 3D-Occ model row of
 each mode: mIoU, movers' mIoU, L2 and mean heading error at 1 / 2 / 3 s; each mode's full
@@ -34,7 +36,7 @@ import renderworld.training.stages.world_model.pose_warp as wmp  # noqa: E402
 from renderworld.training import evaluate  # noqa: E402
 from renderworld.world import constant_turn_rate_poses  # noqa: E402
 
-MODES = ("model", "gt_yaw", "gt_xy", "ctr_yaw")
+MODES = ("model", "gt_yaw", "gt_xy", "ctr_yaw", "path_yaw")
 
 
 def changed_poses(mode: str, poses, hist, future):
@@ -53,9 +55,31 @@ def changed_poses(mode: str, poses, hist, future):
         out[..., :2] = future[..., :2].to(out)
     elif mode == "ctr_yaw":
         out[..., 2] = constant_turn_rate_poses(hist, out.shape[1])[..., 2].to(out)
+    elif mode == "path_yaw":
+        out[..., 2] = path_headings(hist, out)
     elif mode != "model":
         raise ValueError(f"--modes: unknown mode {mode!r}, expected one of {MODES}")
     return out
+
+
+def path_headings(hist, poses, min_step: float = 0.2):
+    """[B, S] headings along the path of ``poses``' positions (radians, current ego frame).
+
+    At each point the direction of the sum of the unit chords before and after it (the last
+    point: its chord before); the chord before the first point starts at the current pose, the
+    one before that at the last history pose. A chord shorter than ``min_step`` metres has no
+    direction: the predicted heading stays where every chord at a point is that short.
+    """
+    import torch
+
+    xy = torch.cat([hist[:, -2:, :2].to(poses), poses[..., :2]], dim=1)  # [B, S + 2, 2]
+    chord = xy[:, 1:] - xy[:, :-1]  # [B, S + 1, 2]: chord k ends at point k (0 = now)
+    n = chord.norm(dim=-1, keepdim=True)
+    unit = torch.where(n > min_step, chord / n.clamp_min(1e-9), torch.zeros_like(chord))
+    before, after = unit[:, 1:], torch.cat([unit[:, 2:], torch.zeros_like(unit[:, :1])], dim=1)
+    d = before + after  # [B, S, 2]
+    ok = d.norm(dim=-1) > 1e-6
+    return torch.where(ok, torch.atan2(d[..., 1], d[..., 0]), poses[..., 2])
 
 
 def _patch(mode: str):

@@ -78,6 +78,9 @@ class PoseHead(nn.Module):
         agents: the head also reads :func:`~renderworld.world.pose_agents.agent_features` of
             this many tracked movers (0: none): where the nearest road users are and how fast
             they move.
+        bev_pool: the bird's-eye features are pooled to ``bev_pool x bev_pool`` cells before
+            the MLP (4: 20 m cells on the 80 m grid; finer says better where a junction
+            begins).
     """
 
     #: Scale of the raw outputs: metres for x / y, radians for yaw.
@@ -93,6 +96,7 @@ class PoseHead(nn.Module):
         kinematics: bool = False,
         motion_frames: int = 0,
         agents: int = 0,
+        bev_pool: int = 4,
     ):
         super().__init__()
         if history < 2 or steps < 1:
@@ -107,13 +111,17 @@ class PoseHead(nn.Module):
         if not isinstance(agents, int) or isinstance(agents, bool) or agents < 0:
             raise ValueError(f"agents: expected an int >= 0, got {agents!r}")
         self.agents = agents
+        if not isinstance(bev_pool, int) or isinstance(bev_pool, bool) or bev_pool < 1:
+            raise ValueError(f"bev_pool: expected an int >= 1, got {bev_pool!r}")
+        self.bev_pool = bev_pool
         bev_in += self.motion_frames
         n_out = 3 + (1 if anchors == "ctr_cv" else 0)  # (dx, dy, dyaw) [+ CTR-vs-CV logit]
         self.bev = nn.Sequential(
             nn.Conv2d(bev_in, 16, 3, stride=2, padding=1), nn.GELU(),
             nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.GELU(),
             nn.Conv2d(32, 32, 3, stride=2, padding=1), nn.GELU(),
-            nn.AdaptiveAvgPool2d(4), nn.Flatten(), nn.Linear(32 * 16, hidden), nn.GELU(),
+            nn.AdaptiveAvgPool2d(bev_pool), nn.Flatten(), nn.Linear(32 * bev_pool**2, hidden),
+            nn.GELU(),
         )  # fmt: skip
         n_in = 4 * history + len(COMMANDS) + hidden
         n_in += kinematic_features(torch.zeros(1, history, 3)).shape[1] if self.kinematics else 0
@@ -245,6 +253,7 @@ class PoseWarpWorldModel(nn.Module):
         kinematics: the pose head also reads :func:`kinematic_features` of the history.
         motion_frames: the pose head also reads :func:`motion_channels` of this many frames.
         agents: the pose head also reads :func:`agent_features` of this many tracked movers.
+        bev_pool: the pose head's bird's-eye readout cells per side (:class:`PoseHead`).
         pose_heads: how many pose heads (more than one: a
             :class:`~renderworld.world.pose_ensemble.PoseEnsemble`, each member initialised
             from its own seed, the global RNG left as one head leaves it).
@@ -260,6 +269,7 @@ class PoseWarpWorldModel(nn.Module):
         motion_frames: int = 0,
         agents: int = 0,
         pose_heads: int = 1,
+        bev_pool: int = 4,
     ):
         super().__init__()
         if not isinstance(config, WorldModelConfig):
@@ -277,6 +287,7 @@ class PoseWarpWorldModel(nn.Module):
             return PoseHead(
                 config.history_frames, config.future_frames, anchors=anchors,
                 kinematics=kinematics, motion_frames=motion_frames, agents=agents,
+                bev_pool=bev_pool,
             )  # fmt: skip
 
         self.pose: PoseHead | PoseEnsemble = head()

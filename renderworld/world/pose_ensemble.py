@@ -17,7 +17,7 @@ from torch import nn
 __all__ = ["PoseEnsemble"]
 
 #: What an ensemble takes over from its first member (all members must agree).
-SHARED = ("history", "steps", "anchors", "kinematics", "motion_frames", "agents")
+SHARED = ("history", "steps", "anchors", "kinematics", "motion_frames", "agents", "bev_pool")
 
 
 class PoseEnsemble(nn.Module):

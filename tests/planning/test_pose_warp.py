@@ -516,3 +516,25 @@ def test_a_token_planner_refuses_to_check():
         planner.plan(make_request(), check=True)
     with pytest.raises(TypeError, match="check: expected a bool"):
         planner.plan(make_request(), check=1)
+
+
+def test_bundles_keep_a_finer_bird_s_eye_readout(tmp_path):
+    tok, base = make_model(seed=4)
+    wm = PoseWarpWorldModel(base.config, anchors="ctr_cv", bev_pool=7)
+    with torch.no_grad():
+        for p in wm.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    path = save_planner_bundle(tmp_path / "p.pt", tok, wm)
+    assert torch.load(path, weights_only=True)["world_model"]["options"]["bev_pool"] == 7
+    loaded = load_planner(path)
+    assert loaded.world_model.pose.bev_pool == 7
+    req = request()
+    np.testing.assert_array_equal(
+        Planner(tok, wm).plan(req).trajectory, loaded.plan(req).trajectory
+    )
+    # Written before the option existed: the 4 x 4 readout.
+    old = _tampered(tmp_path, lambda d: d["world_model"]["options"].pop("bev_pool"))
+    assert load_planner(old).world_model.pose.bev_pool == 4
+    bad = _tampered(tmp_path, lambda d: d["world_model"]["options"].update(bev_pool=0))
+    with pytest.raises(ValueError, match="bev_pool: expected an int >= 1"):
+        load_planner(bad)

@@ -35,6 +35,8 @@ BASE = ["stage=world_model", "stage.tokenizer_ckpt=tok.pt"]
         ("stage.pose_agents=2.5", "stage.pose_agents"),
         ("stage.pose_heads=0", "stage.pose_heads"),
         ("stage.pose_heads=true", "stage.pose_heads"),
+        ("stage.pose_bev_pool=0", "stage.pose_bev_pool"),
+        ("stage.pose_bev_pool=2.5", "stage.pose_bev_pool"),
         ("stage.pose_lr_scale=0", "stage.pose_lr_scale"),
         ("stage.pose_lr_scale=-1", "stage.pose_lr_scale"),
         ("stage.pose_warmup_steps=-5", "stage.pose_warmup_steps"),

@@ -258,3 +258,23 @@ def test_pose_warp_model_computes_only_the_scored_positions_as_the_reference_doe
         ref = lg.scatter_add(2, tokens[:, :, g, None], bonus)[:, 2:]
         assert mine.shape == ref.shape == (2, 3, cfg.codebook_sizes[g], 4, 4)
         torch.testing.assert_close(mine, ref, rtol=1e-5, atol=1e-6)
+
+
+def test_pose_head_with_a_finer_readout_tells_where_a_feature_lies():
+    hist, cmd = torch.zeros(1, 3, 3), torch.tensor([0])
+    near = torch.zeros(1, len(BEV_GROUPS), 48, 48)
+    near[0, 0, 18:22, 22:26] = 1.0  # a patch ahead of the ego ...
+    far = torch.roll(near, 8, dims=2)  # ... and the same patch 8 cells (one readout cell) on
+    outputs = {}
+    for pool in (1, 6):
+        torch.manual_seed(0)
+        head = PoseHead(history=3, steps=2, bev_pool=pool)
+        assert head.bev[-2].in_features == 32 * pool**2
+        with torch.no_grad():
+            head.mlp[-1].weight.normal_()
+        outputs[pool] = head(hist, cmd, near)[0], head(hist, cmd, far)[0]
+    # Pooled to one cell, where the patch lies is lost; read out in 6 x 6 cells, it is not.
+    torch.testing.assert_close(*outputs[1])
+    assert not torch.allclose(*outputs[6])
+    with pytest.raises(ValueError, match="bev_pool: expected an int >= 1"):
+        PoseHead(history=3, steps=2, bev_pool=0)

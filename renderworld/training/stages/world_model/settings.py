@@ -70,6 +70,7 @@ class StageSettings:
     pose_motion_frames: int = 0
     pose_agents: int = 0
     pose_heads: int = 1
+    pose_bev_pool: int = 4
     pose_lr_scale: float = 1.0
     pose_warmup_steps: int = 0
     pose_joint_lr_scale: float | None = None
@@ -142,6 +143,10 @@ def stage_settings(cfg: Any) -> StageSettings:
     heads = 1 if heads is None else heads
     if not isinstance(heads, int) or isinstance(heads, bool) or heads < 1:
         raise ValueError(f"stage.pose_heads: expected an int >= 1, got {heads!r}")
+    bev_pool = s.get("pose_bev_pool", 4)
+    bev_pool = 4 if bev_pool is None else bev_pool
+    if not isinstance(bev_pool, int) or isinstance(bev_pool, bool) or bev_pool < 1:
+        raise ValueError(f"stage.pose_bev_pool: expected an int >= 1, got {bev_pool!r}")
     lr_scale = _number(s, "pose_lr_scale", 1.0)
     if lr_scale <= 0:
         raise ValueError(f"stage.pose_lr_scale: expected a number > 0, got {lr_scale!r}")
@@ -192,6 +197,7 @@ def stage_settings(cfg: Any) -> StageSettings:
         pose_motion_frames=motion,
         pose_agents=agents,
         pose_heads=heads,
+        pose_bev_pool=bev_pool,
         pose_lr_scale=lr_scale,
         pose_warmup_steps=warmup,
         pose_joint_lr_scale=joint,
@@ -274,6 +280,7 @@ def build_world_model(
         motion_frames=st.pose_motion_frames,
         agents=st.pose_agents,
         pose_heads=st.pose_heads,
+        bev_pool=st.pose_bev_pool,
     )
 
 
