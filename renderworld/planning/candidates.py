@@ -63,6 +63,8 @@ class CheckConfig:
         extend_m: straight extension of the path beyond the plan's last waypoint, metres.
         box_margin_m: the ego box is widened by this much on each side for collisions, metres.
         vulnerable_margin_m: and by this much more for pedestrians, cyclists, motorcyclists.
+        side_margin_m: and by this much more sideways only (an obstacle is known to its cell:
+            its side may lie half a cell from the cell centre the check tests), metres.
         drivable_margin_m: the ego box points checked for the drivable area lie this far out.
         ttc_horizon_s: time-to-collision horizon, seconds.
         progress_floor_m: below this much planned progress every candidate's EP is 1.
@@ -124,6 +126,7 @@ class CheckConfig:
     extend_m: float = 60.0
     box_margin_m: float = 0.2
     vulnerable_margin_m: float = 1.0
+    side_margin_m: float = 0.0
     drivable_margin_m: float = 0.0
     ttc_horizon_s: float = 1.0
     progress_floor_m: float = 2.0

@@ -206,7 +206,7 @@ def score_candidates(
     pad = cfg.box_margin_m + cfg.vulnerable_margin_m * scene.vulnerable[keep]  # [P] metres
     centre, u, nrm = _box_frames(states)
     half_l = EGO_LENGTH / 2 + pad  # [P]
-    half_w = EGO_WIDTH / 2 + pad
+    half_w = EGO_WIDTH / 2 + pad + cfg.side_margin_m
     moving = states[..., 3] > _STOPPED  # [N, T]
     first = np.full(n, np.inf)
     ttc_bad = np.zeros(n, dtype=bool)

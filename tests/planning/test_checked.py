@@ -441,3 +441,21 @@ def test_progress_is_measured_along_the_plans_path():
     c = check_plan(occ, stand, creep, GRID, cfg, cruise_speed=10.0).candidates
     ahead = np.flatnonzero(np.array(c.kind) == "steady_idm")
     assert c.progress_m[ahead].max() > 5.0 and c.EP[ahead].max() == 1.0
+
+
+def test_the_side_margin_widens_the_box_sideways_only():
+    from renderworld.constants import EGO_WIDTH
+
+    # A parked car in the cells centred 2.4 m right of the path: the box (half its width and
+    # the 0.2 m margin) passes it; 1.3 m more sideways reaches the cell centres.
+    occ, poses = history([(CAR, lambda t: (20.0, -2.4), (3, 1))])
+    plan = straight_plan()
+    assert EGO_WIDTH / 2 + CheckConfig().box_margin_m < 2.4 < EGO_WIDTH / 2 + 0.2 + 1.3
+    assert check_plan(occ, poses, plan, GRID).candidates.NC[0] == 1
+    wide = CheckConfig(side_margin_m=1.3)
+    assert check_plan(occ, poses, plan, GRID, wide).candidates.NC[0] == 0
+    # Lengthwise nothing changes: a car 40 m ahead in the lane is met by neither.
+    occ, poses = history([(CAR, lambda t: (50.0 + V * t, -0.8), (3, 2))])
+    a = check_plan(occ, poses, plan, GRID).candidates
+    b = check_plan(occ, poses, plan, GRID, CheckConfig(side_margin_m=0.4)).candidates
+    assert a.NC[0] == b.NC[0] == 1 and a.TTC[0] == b.TTC[0] == 1
