@@ -54,6 +54,8 @@ class CheckConfig:
         s0: IDM standstill gap to the leader, metres.
         headway: IDM time headway, seconds.
         idm_min_accel: IDM's braking is clipped here, m/s^2 (negative).
+        soft_min_accel: None, or also the IDM runs with their braking clipped here instead
+            (kind ``idm_soft``; e.g. -4.0, inside NAVSIM's comfort bound), m/s^2 (negative).
         corridor_margin_m: corridor half-width beyond the ego's, metres.
         ramp_m: path length over which a lateral offset is reached, metres (at least).
         quintic_ramp: the offset is reached along a quintic smoothstep instead of a cubic one:
@@ -119,6 +121,7 @@ class CheckConfig:
     s0: float = 2.0
     headway: float = 1.5
     idm_min_accel: float = -8.0
+    soft_min_accel: float | None = None
     corridor_margin_m: float = 0.3
     ramp_m: float = 12.0
     ramp_s: float = 0.0
@@ -297,8 +300,8 @@ def make_candidates(
 
     Returns:
         :class:`Candidates`, offsets in ``cfg.offsets_m`` order, each offset's ``plan`` first,
-        then the IDM runs (fastest first), then the brakes
-        (gentlest first).
+        then the IDM runs (fastest first; with ``soft_min_accel`` then those with the softer
+        clip), then the brakes (gentlest first).
     """
     plan = np.asarray(plan, dtype=np.float64)
     steps = plan.shape[0]
@@ -344,6 +347,13 @@ def make_candidates(
             kinds += ["idm"] * len(targets)
             offs += [d] * len(targets)
             spd += targets
+            if cfg.soft_min_accel is not None:
+                soft = replace(cfg, idm_min_accel=cfg.soft_min_accel)
+                arc = idm_arc(speed, targets, lead, soft, steps, dt)
+                wps.append(path.offset(arc, d, cfg.ramp_m, cfg.quintic_ramp))
+                kinds += ["idm_soft"] * len(targets)
+                offs += [d] * len(targets)
+                spd += targets
         if cfg.brake_decels:
             wps.append(_brake_waypoints(path, d, speed, cfg.brake_decels, cfg, steps, dt))
             kinds += ["brake"] * len(cfg.brake_decels)

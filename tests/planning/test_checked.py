@@ -459,3 +459,24 @@ def test_the_side_margin_widens_the_box_sideways_only():
     a = check_plan(occ, poses, plan, GRID).candidates
     b = check_plan(occ, poses, plan, GRID, CheckConfig(side_margin_m=0.4)).candidates
     assert a.NC[0] == b.NC[0] == 1 and a.TTC[0] == b.TTC[0] == 1
+
+
+def test_soft_idm_runs_brake_no_harder_than_their_clip():
+    occ, poses = history([(CAR, lambda t: (24.0, -0.8), (3, 2))], road_half_width=3.5)
+    plan = straight_plan()
+    plain = check_plan(occ, poses, plan, GRID).candidates
+    assert "idm_soft" not in plain.kind
+    c = check_plan(occ, poses, plan, GRID, CheckConfig(soft_min_accel=-4.0)).candidates
+    soft = [i for i, k in enumerate(c.kind) if k == "idm_soft"]
+    hard = [i for i, k in enumerate(c.kind) if k == "idm"]
+    cfg = CheckConfig()
+    assert len(soft) == len(hard) == len(cfg.offsets_m) * len(cfg.speed_fractions)
+
+    def decel(i):  # the strongest braking between waypoints, m/s^2 (speeds from the waypoints)
+        w = np.concatenate([[[0.0, 0.0]], c.waypoints[i]])
+        v = np.r_[V, np.hypot(*np.diff(w, axis=0).T) / DT]
+        return -np.diff(v).min() / DT
+
+    straight = [i for i in soft + hard if c.offset_m[i] == 0.0]  # no sideways ramp in the speeds
+    assert max(decel(i) for i in hard if i in straight) > 5.0  # IDM brakes hard behind the car
+    assert max(decel(i) for i in soft if i in straight) < 4.0 + 1e-6  # its soft twin at most 4
