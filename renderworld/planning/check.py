@@ -65,8 +65,8 @@ class CandidateScores:
     """Every candidate and its scores (``PlanResult.candidates`` of a checked plan).
 
     Attributes:
-        kind: N candidate kinds (``plan``, ``idm``, ``brake``; ``steady_idm``, ``steady_brake``
-            along the ego's steady path).
+        kind: N candidate kinds (``plan``, ``idm``, ``brake``, with ``soft_min_accel`` also
+            ``idm_soft``; ``steady_idm``, ``steady_brake``, ... along the ego's steady path).
         offset_m: [N] lateral offsets, metres.
         speed: [N] target speed (m/s) or deceleration (m/s^2, ``brake``).
         waypoints: [N, S, 2] the candidates as proposed, metres, current ego frame.
