@@ -65,6 +65,11 @@ def drive(cfg: DictConfig) -> dict:
     worlds = select_worlds(build_worlds(sim), cfg.get("behaviours"), cfg.get("max_scenes"),
                            cfg.get("scenes"))  # fmt: skip
     build_s = time.perf_counter() - t_build
+    if cfg.get("trace"):  # refused before driving, not after
+        if not cfg.get("planner"):
+            raise ValueError("trace: traces a checked planner's choices; pass planner=<bundle>")
+        if str(cfg.trace) not in {w.name for w in worlds}:
+            raise ValueError(f"trace: no scene {str(cfg.trace)!r} among this run's scenes")
     run = run_closed_loop(worlds, planners, progress=bool(cfg.progress))
     check = self_check(run)
     settings = {
@@ -77,6 +82,13 @@ def drive(cfg: DictConfig) -> dict:
         "seconds": round(time.perf_counter() - t0, 3),
     }
     paths = write_outputs(run, worlds, Path(str(cfg.out)), settings, check)
+    if cfg.get("trace"):
+        from renderworld.sim.closed_loop.trace import write_trace
+
+        scene = str(cfg.trace)
+        world = next(w for w in worlds if w.name == scene)
+        paths["trace"] = write_trace(world, planners, Path(str(cfg.out)))
+        print(f"trace of {scene}: {paths['trace']}")
     if cfg.get("record"):
         from renderworld.viewer.closed_loop import write_episode_recording
 

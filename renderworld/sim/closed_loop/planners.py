@@ -285,6 +285,9 @@ class BundlePlanner:
         self.grid = planner.grid
         self._session = PlannerSession(planner)
         self._pushed = -1
+        #: None, or a list each plan's ``(t, PlanResult)`` is appended to
+        #: (:mod:`renderworld.sim.closed_loop.trace`).
+        self.results: list | None = None
 
     def reset(self, world: World) -> None:
         self._session.reset()
@@ -309,6 +312,8 @@ class BundlePlanner:
             obs.displacements, obs.command, forecast=False, ego_yaws=np.asarray(obs.yaws),
             check=self.check, movers=movers,
         )  # fmt: skip
+        if self.results is not None:
+            self.results.append((float(obs.t), result))
         return np.asarray(result.trajectory, dtype=np.float64)
 
 
