@@ -29,6 +29,8 @@ import csv
 import sys
 from pathlib import Path
 
+import torch
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -70,8 +72,6 @@ def path_headings(hist, poses, min_step: float = 0.2):
     one before that at the last history pose. A chord shorter than ``min_step`` metres has no
     direction: the predicted heading stays where every chord at a point is that short.
     """
-    import torch
-
     xy = torch.cat([hist[:, -2:, :2].to(poses), poses[..., :2]], dim=1)  # [B, S + 2, 2]
     chord = xy[:, 1:] - xy[:, :-1]  # [B, S + 1, 2]: chord k ends at point k (0 = now)
     n = chord.norm(dim=-1, keepdim=True)

@@ -321,6 +321,7 @@ def make_candidates(
         s_plan = np.maximum.accumulate(path.project(plan))
     wps, kinds, offs, spd = [], [], [], []
     leads = leaders(scene, path, cfg.offsets_m, cfg, steps * dt)
+    soft = None if cfg.soft_min_accel is None else replace(cfg, idm_min_accel=cfg.soft_min_accel)
     for d, lead in zip(cfg.offsets_m, leads):
         # The plan, no farther than IDM at the plan's top speed would go behind the leaders
         # (its headway is the margin the forecast needs: the exact plan beside it, and the plan
@@ -347,8 +348,7 @@ def make_candidates(
             kinds += ["idm"] * len(targets)
             offs += [d] * len(targets)
             spd += targets
-            if cfg.soft_min_accel is not None:
-                soft = replace(cfg, idm_min_accel=cfg.soft_min_accel)
+            if soft is not None:
                 arc = idm_arc(speed, targets, lead, soft, steps, dt)
                 wps.append(path.offset(arc, d, cfg.ramp_m, cfg.quintic_ramp))
                 kinds += ["idm_soft"] * len(targets)

@@ -352,20 +352,27 @@ def test_bundles_keep_a_pose_head_that_reads_kinematics(tmp_path):
         load_planner(bad)
 
 
-def test_bundles_keep_a_pose_head_that_reads_motion(tmp_path):
+def _round_trip(tmp_path, name, **options):
+    """A perturbed pose-warp model with ``options``, bundled and loaded again; its plan and the
+    loaded one's must agree. Returns (the bundle's path, the loaded planner, the request)."""
     tok, base = make_model(seed=4)
-    wm = PoseWarpWorldModel(base.config, anchors="ctr_cv", motion_frames=2)
+    wm = PoseWarpWorldModel(base.config, anchors="ctr_cv", **options)
     with torch.no_grad():
         for p in wm.parameters():
             p.add_(0.05 * torch.randn_like(p))
-    path = save_planner_bundle(tmp_path / "m.pt", tok, wm)
-    assert torch.load(path, weights_only=True)["world_model"]["options"]["motion_frames"] == 2
+    path = save_planner_bundle(tmp_path / name, tok, wm)
     loaded = load_planner(path)
-    assert loaded.world_model.pose.motion_frames == 2
     req = request()
     np.testing.assert_array_equal(
         Planner(tok, wm).plan(req).trajectory, loaded.plan(req).trajectory
     )
+    return path, loaded, req
+
+
+def test_bundles_keep_a_pose_head_that_reads_motion(tmp_path):
+    path, loaded, req = _round_trip(tmp_path, "m.pt", motion_frames=2)
+    assert torch.load(path, weights_only=True)["world_model"]["options"]["motion_frames"] == 2
+    assert loaded.world_model.pose.motion_frames == 2
     # The plan reads the past frames: moving the past objects changes it.
     other = PlanRequest(req.occupancy.copy(), req.ego_displacements, req.command, req.ego_yaws)
     other.occupancy[:-1, :, :, 1] = FREE_ID
@@ -519,19 +526,9 @@ def test_a_token_planner_refuses_to_check():
 
 
 def test_bundles_keep_a_finer_bird_s_eye_readout(tmp_path):
-    tok, base = make_model(seed=4)
-    wm = PoseWarpWorldModel(base.config, anchors="ctr_cv", bev_pool=7)
-    with torch.no_grad():
-        for p in wm.parameters():
-            p.add_(0.05 * torch.randn_like(p))
-    path = save_planner_bundle(tmp_path / "p.pt", tok, wm)
+    path, loaded, _ = _round_trip(tmp_path, "p.pt", bev_pool=7)
     assert torch.load(path, weights_only=True)["world_model"]["options"]["bev_pool"] == 7
-    loaded = load_planner(path)
     assert loaded.world_model.pose.bev_pool == 7
-    req = request()
-    np.testing.assert_array_equal(
-        Planner(tok, wm).plan(req).trajectory, loaded.plan(req).trajectory
-    )
     # Written before the option existed: the 4 x 4 readout.
     old = _tampered(tmp_path, lambda d: d["world_model"]["options"].pop("bev_pool"))
     assert load_planner(old).world_model.pose.bev_pool == 4
