@@ -64,47 +64,61 @@ def train(cfg: DictConfig) -> dict[str, float]:
     _set_torch_flags(tcfg)
     info = init_distributed(tcfg.device)
     try:
-        cfg, run_dir = _resolve(cfg, info)
-        _quiet_other_ranks(info)
-        stage_name = str(cfg.stage.name)
-        last = run_dir / "checkpoints" / "last.pt"
-        ckpt = None
-        if cfg.get("resume", False):
-            ckpt = load_checkpoint(last, expected_stage=stage_name, for_training=True)
-        elif last.exists():
-            raise ValueError(
-                f"run_dir {str(run_dir)!r} already holds {last.name}: pass resume=true to "
-                "continue it, or choose another run_dir"
-            )
-        init = _init_checkpoint(cfg, stage_name) if ckpt is None else None
-        stage = _build_stage(cfg)
-        yaml_text = config_to_yaml(cfg)
-        trainer = Trainer(stage, cfg, run_dir, info, tcfg, ocfg, scfg, _seed(cfg), yaml_text)
-        if ckpt is not None:
-            trainer.load_state_dict(ckpt, source=f"checkpoint {str(last)!r}")
-        elif init is not None:
-            _init_weights(trainer, init, source=f"init_from {str(cfg.init_from)!r}")
-            log.info("%s starts from the weights of %s", stage_name, cfg.init_from)
-        # Only now, with everything validated, write into the run directory.
-        if info.is_main:
-            run_dir.mkdir(parents=True, exist_ok=True)
-            if ckpt is None:
-                (run_dir / "config.yaml").write_text(yaml_text)
-            else:
-                (run_dir / f"config.resume-step{trainer.step}.yaml").write_text(yaml_text)
-                truncate_metrics_csv(run_dir / "metrics.csv", trainer.step)
-                log.info("resuming %s from step %d (%s)", stage_name, trainer.step, last)
-        logger = MetricLogger(run_dir, enabled=info.is_main, tensorboard=tcfg.tensorboard)
-        try:
-            metrics = trainer.fit(logger)
-        finally:
-            logger.close()
-        if info.is_main:
-            log.info("finished %s at step %d: %s", stage_name, trainer.step, metrics)
-            _print_report(stage, metrics, run_dir)
-        return metrics
+        # The Trainer (its DDP reducer, its loaders) lives in _fit's frame only, so it is freed
+        # before the group is torn down: a gloo work still referenced then aborts the process.
+        return _fit(cfg, info, tcfg, ocfg, scfg)
     finally:
         shutdown_distributed(info)
+
+
+def _fit(
+    cfg: DictConfig,
+    info: DistInfo,
+    tcfg: TrainerConfig,
+    ocfg: OptimizerConfig,
+    scfg: SchedulerConfig,
+) -> dict[str, float]:
+    """:func:`train`'s body, inside the process group (validated trainer, optimizer and
+    scheduler groups given)."""
+    cfg, run_dir = _resolve(cfg, info)
+    _quiet_other_ranks(info)
+    stage_name = str(cfg.stage.name)
+    last = run_dir / "checkpoints" / "last.pt"
+    ckpt = None
+    if cfg.get("resume", False):
+        ckpt = load_checkpoint(last, expected_stage=stage_name, for_training=True)
+    elif last.exists():
+        raise ValueError(
+            f"run_dir {str(run_dir)!r} already holds {last.name}: pass resume=true to "
+            "continue it, or choose another run_dir"
+        )
+    init = _init_checkpoint(cfg, stage_name) if ckpt is None else None
+    stage = _build_stage(cfg)
+    yaml_text = config_to_yaml(cfg)
+    trainer = Trainer(stage, cfg, run_dir, info, tcfg, ocfg, scfg, _seed(cfg), yaml_text)
+    if ckpt is not None:
+        trainer.load_state_dict(ckpt, source=f"checkpoint {str(last)!r}")
+    elif init is not None:
+        _init_weights(trainer, init, source=f"init_from {str(cfg.init_from)!r}")
+        log.info("%s starts from the weights of %s", stage_name, cfg.init_from)
+    # Only now, with everything validated, write into the run directory.
+    if info.is_main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        if ckpt is None:
+            (run_dir / "config.yaml").write_text(yaml_text)
+        else:
+            (run_dir / f"config.resume-step{trainer.step}.yaml").write_text(yaml_text)
+            truncate_metrics_csv(run_dir / "metrics.csv", trainer.step)
+            log.info("resuming %s from step %d (%s)", stage_name, trainer.step, last)
+    logger = MetricLogger(run_dir, enabled=info.is_main, tensorboard=tcfg.tensorboard)
+    try:
+        metrics = trainer.fit(logger)
+    finally:
+        logger.close()
+    if info.is_main:
+        log.info("finished %s at step %d: %s", stage_name, trainer.step, metrics)
+        _print_report(stage, metrics, run_dir)
+    return metrics
 
 
 def _init_checkpoint(cfg: DictConfig, stage_name: str) -> dict[str, Any] | None:

@@ -7,6 +7,7 @@ a process group: NCCL when it trains on CUDA, gloo on CPU.
 
 from __future__ import annotations
 
+import gc
 import os
 import warnings
 from collections.abc import Mapping
@@ -111,8 +112,11 @@ def shutdown_distributed(info: DistInfo) -> None:
 
     All ranks meet at a barrier first: a rank that tears gloo down while a peer is still
     receiving aborts the peer ("terminate called without an active exception", seen in CI).
+    Unreachable objects are collected before that: a DDP reducer still alive in a reference
+    cycle holds gloo works whose late release aborts the process in the same way.
     """
     if info.owns_group and dist.is_initialized():
+        gc.collect()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             try:
