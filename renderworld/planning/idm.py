@@ -4,7 +4,10 @@ PDM-Closed (nuPlan, NAVSIM) simulates its proposals with IDM behind the leading 
 leaders are the forecast obstacle points inside the ego's corridor at each moment
 (:func:`leaders`): a mover where the forecast puts it then, or static scenery, moving along the
 path at its velocity's component, never backwards. A pedestrian who will have crossed is not
-waited for; one who will be in the lane is.
+waited for; one who will be in the lane is. With ``CheckConfig.anticipate_s`` an obstacle that
+will enter the corridor within that many seconds leads already, at its place along the path
+now (the privileged rule-based reference's rule): a car cutting in is followed from when its
+cut-in is foreseen, not from when it arrives, unless the ego will have passed by then.
 
 Frames: the current ego frame (x forward, y left; metres, seconds, m/s); arc lengths along the
 path from the ego's rear axle now.
@@ -19,10 +22,13 @@ import numpy as np
 from renderworld.constants import EGO_CENTRE_OFFSET, EGO_LENGTH, EGO_WIDTH
 from renderworld.planning.scene import ForecastScene
 
-__all__ = ["BEHIND_M", "FRONT", "Leaders", "idm_arc", "leaders", "too_close"]
+__all__ = [
+    "BEHIND_M", "FRONT", "PASS_M", "Leaders", "cah_accel", "idm_arc", "leaders", "too_close",
+]  # fmt: skip
 
 FRONT = EGO_CENTRE_OFFSET + EGO_LENGTH / 2  # rear axle -> front bumper, metres
 BEHIND_M = 1.0  # corridor points this far behind the front bumper still lead, metres
+PASS_M = 2.0  # an anticipated leader is ignored when the ego's rear will be this far past it
 
 
 @dataclass
@@ -31,28 +37,49 @@ class Leaders:
 
     Attributes:
         arc: [T, Q] arc length (metres, from the ego's rear axle now) at which each obstacle
-            point lies in the corridor at time ``t * sub_dt`` (inf: outside it then).
+            point lies in the corridor at time ``t * sub_dt`` (inf: outside it then); with
+            anticipation, of a point that enters it ``delay`` later, the arc where it enters
+            less its travel along the path until then (its place along the path at ``t``).
         speed: [T, Q] the point's velocity component along the path there, m/s (never < 0).
         sub_dt: seconds between rows.
+        delay: None, or [T, Q] seconds until the point enters the corridor (0: in it).
+        entry: None, or [T, Q] arc length where it enters, metres.
     """
 
     arc: np.ndarray
     speed: np.ndarray
     sub_dt: float
+    delay: np.ndarray | None = None
+    entry: np.ndarray | None = None
 
-    def nearest(self, i: int, front: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def nearest(
+        self, i: int, front: np.ndarray, ego_speed: np.ndarray | float = 0.0,
+        with_accel: bool = False,
+    ) -> tuple[np.ndarray, ...]:  # fmt: skip
         """(gap [F] metres, speed [F] m/s) of the leader at row ``i`` for front bumpers at arc
         ``front`` [F] (inf, 0 where none): the nearest point ahead, counting points up to
-        :data:`BEHIND_M` behind the bumper (they are about to touch it)."""
-        arc = self.arc[min(i, len(self.arc) - 1)]
+        :data:`BEHIND_M` behind the bumper (they are about to touch it). An anticipated point
+        does not lead where the ego, going on at ``ego_speed`` ([F] or one, m/s), will have
+        passed where it enters by :data:`PASS_M` when it gets there. ``with_accel``: also its
+        acceleration along the path [F] (m/s^2, from the next row's speed; 0 where none)."""
+        row = min(i, len(self.arc) - 1)
+        arc = self.arc[row]
         if not arc.size:
-            return np.full(len(front), np.inf), np.zeros(len(front))
+            none = (np.full(len(front), np.inf), np.zeros(len(front)))
+            return (*none, np.zeros(len(front))) if with_accel else none
         ahead = arc[None] > front[:, None] - BEHIND_M  # [F, Q]
+        if self.delay is not None:
+            rear = front[:, None] - EGO_LENGTH + np.reshape(ego_speed, (-1, 1)) * self.delay[row]
+            ahead &= (self.delay[row] == 0) | (rear < self.entry[row] + PASS_M)
         gaps = np.where(ahead, arc[None] - front[:, None], np.inf)
         j = gaps.argmin(1)
         gap = gaps[np.arange(len(front)), j]
-        lead_v = np.where(np.isfinite(gap), self.speed[min(i, len(self.arc) - 1)][j], 0.0)
-        return gap, lead_v
+        lead_v = np.where(np.isfinite(gap), self.speed[row][j], 0.0)
+        if not with_accel:
+            return gap, lead_v
+        later = self.speed[min(row + 1, len(self.arc) - 1)][j]
+        lead_a = np.where(np.isfinite(gap), (later - self.speed[row][j]) / self.sub_dt, 0.0)
+        return gap, lead_v, lead_a
 
 
 def leaders(
@@ -63,7 +90,9 @@ def leaders(
     ``horizon`` seconds, the forecast obstacle points (movers where the forecast puts them then,
     static scenery) inside the corridor, the ego box widened by ``cfg.corridor_margin_m`` on each
     side around the shifted path (points are projected onto the unshifted path; the shift at
-    their arc length decides whether they lie in the shifted corridor).
+    their arc length decides whether they lie in the shifted corridor). With
+    ``cfg.anticipate_s`` > 0 a point leads from that many seconds before it enters
+    (:class:`Leaders`).
 
     Args:
         scene: the forecast scene.
@@ -75,7 +104,9 @@ def leaders(
     """
     s = np.arange(0.0, min(path.length, 80.0), 0.5)
     centre, hd = path.at(s)
-    taus = np.arange(0.0, horizon + 1e-9, sub_dt)
+    n_rows = len(np.arange(0.0, horizon + 1e-9, sub_dt))
+    n_ahead = int(round(max(cfg.anticipate_s, 0.0) / sub_dt))
+    taus = np.arange(n_rows + n_ahead) * sub_dt
     n = len(taus)
     half = EGO_WIDTH / 2 + cfg.corridor_margin_m
     reach = half + max(abs(d) for d in offsets)
@@ -114,30 +145,77 @@ def leaders(
     for d in offsets:
         inside = (np.abs(lat - d * ramp) <= half) & (arc >= 0.0)
         keep = inside.any(0)
-        out.append(Leaders(np.where(inside, arc, np.inf)[:, keep], along[:, keep], sub_dt))
+        inside, a, v = inside[:, keep], arc[:, keep], along[:, keep]
+        if not n_ahead:
+            out.append(Leaders(np.where(inside, a, np.inf), v, sub_dt))
+            continue
+        out.append(_anticipated(inside, a, v, n_rows, n_ahead, sub_dt))
     return out
+
+
+def _anticipated(inside, arc, along, n_rows, n_ahead, sub_dt) -> Leaders:
+    """:class:`Leaders` whose row ``i`` holds each point's first entry into the corridor within
+    rows ``i ... i + n_ahead`` (inside, arc, along: [n_rows + n_ahead, Q])."""
+    q = inside.shape[1]
+    eq = np.full((n_rows, q), np.inf)
+    speed = np.zeros((n_rows, q))
+    delay = np.zeros((n_rows, q))
+    entry = np.full((n_rows, q), np.inf)
+    cols = np.arange(q)
+    for i in range(n_rows):
+        window = inside[i : i + n_ahead + 1]
+        first = window.argmax(0)  # the first row inside (0 where never: masked below)
+        hit = window[first, cols]
+        j = i + first
+        wait = first * sub_dt
+        eq[i] = np.where(hit, arc[j, cols] - along[j, cols] * wait, np.inf)
+        speed[i] = np.where(hit, along[j, cols], 0.0)
+        delay[i] = np.where(hit, wait, 0.0)
+        entry[i] = np.where(hit, arc[j, cols], np.inf)
+    return Leaders(eq, speed, sub_dt, delay, entry)
+
+
+def cah_accel(v, v_l, a_l, gap, a_max) -> np.ndarray:
+    """The constant-acceleration heuristic (Kesting, Treiber, Helbing 2010): the acceleration
+    [F] (m/s^2) that just avoids a collision if the leader keeps its acceleration ``a_l`` (capped
+    at ``a_max``) and neither reacts; ego speed ``v``, leader speed ``v_l`` (m/s), ``gap`` (m)."""
+    a_t = np.minimum(a_l, a_max)
+    g = np.maximum(gap, 0.05)
+    near = v_l * (v - v_l) <= -2.0 * g * a_t
+    den = np.maximum(v_l * v_l - 2.0 * g * a_t, 1e-6)
+    return np.where(near, v * v * a_t / den, a_t - np.maximum(v - v_l, 0.0) ** 2 / (2.0 * g))
 
 
 def idm_arc(v_now, targets, lead: Leaders, cfg, steps, dt) -> np.ndarray:
     """[F, steps] arc lengths (metres) at each waypoint of IDM runs towards each target speed
-    [F] (m/s), each behind the leader its own position and the time give (:class:`Leaders`)."""
+    [F] (m/s), each behind the leader its own position and the time give (:class:`Leaders`).
+
+    With ``cfg.acc_coolness`` c > 0 the runs follow the ACC model (the Enhanced IDM; Kesting,
+    Treiber, Helbing 2010) instead: where IDM brakes harder than the constant-acceleration
+    heuristic needs (a car cutting in close but not much slower), the acceleration is
+    ``(1 - c) a_IDM + c [a_CAH + b tanh((a_IDM - a_CAH) / b)]``: firm, not an emergency stop."""
     f = len(targets)
     v = np.full(f, v_now, dtype=np.float64)
     s = np.zeros(f)
     v0 = np.maximum(np.asarray(targets, dtype=np.float64), 0.1)
     sub = lead.sub_dt
     n_sub = int(round(dt / sub))
+    cool = cfg.acc_coolness
     out = np.empty((f, steps))
     for k in range(steps):
         for j in range(n_sub):
             acc = cfg.a_max * (1 - (v / v0) ** 4)
-            gap, v_l = lead.nearest(k * n_sub + j, s + FRONT)
+            gap, v_l, a_l = lead.nearest(k * n_sub + j, s + FRONT, v, with_accel=True)
             has = np.isfinite(gap)
             if has.any():
                 g = np.maximum(np.where(has, gap, 1.0), 0.05)
                 dv = v - v_l
                 s_star = cfg.s0 + v * cfg.headway + v * dv / (2 * np.sqrt(cfg.a_max * cfg.b))
                 acc = acc - np.where(has, cfg.a_max * (np.maximum(s_star, 0.0) / g) ** 2, 0.0)
+                if cool > 0:
+                    cah = cah_accel(v, v_l, a_l, g, cfg.a_max)
+                    blend = (1 - cool) * acc + cool * (cah + cfg.b * np.tanh((acc - cah) / cfg.b))
+                    acc = np.where(has & (acc < cah), blend, acc)
             acc = np.maximum(acc, cfg.idm_min_accel)
             v_new = np.maximum(v + acc * sub, 0.0)
             s = s + 0.5 * (v + v_new) * sub
@@ -151,7 +229,7 @@ def too_close(s_plan, v_plan, lead: Leaders, cfg, dt) -> bool:
     ``cfg.s0 + cfg.cap_gap_s * speed`` of a leader at some waypoint (gap metres, speed m/s)."""
     n_sub = int(round(dt / lead.sub_dt))
     for k in range(len(s_plan)):
-        gap, _ = lead.nearest((k + 1) * n_sub, np.array([s_plan[k] + FRONT]))
+        gap, _ = lead.nearest((k + 1) * n_sub, np.array([s_plan[k] + FRONT]), v_plan[k])
         if gap[0] < cfg.s0 + cfg.cap_gap_s * v_plan[k]:
             return True
     return False

@@ -1,0 +1,122 @@
+"""IDM behind the forecast's leaders: anticipated leaders (``CheckConfig.anticipate_s``).
+
+Hand-made scenes on the demo's coarse grid (the ego along +x at 10 m/s; the forecast's movers
+at constant velocity), as in ``test_checked``.
+"""
+
+import numpy as np
+
+from renderworld.planning.candidates import CheckConfig, PlanPath, leaders
+from renderworld.planning.checked import check_plan
+from renderworld.planning.idm import FRONT, idm_arc
+from renderworld.planning.scene import forecast_scene
+
+from .test_checked import CAR, GRID, PED, V, history, straight_plan
+
+PATH = PlanPath(np.stack([np.arange(0, 40.0, 5.0), np.zeros(8)], 1), 60.0)
+
+
+def cut_in(lateral=1.0):
+    """A car in the right-hand lane 14 m ahead at the ego's speed, drifting left into its lane
+    at ``lateral`` m/s (its cells start 3.2 m right of the path)."""
+    return (CAR, lambda t: (14.0 + V * t, -4.0 + lateral * t), (3, 1))
+
+
+def test_a_car_cutting_in_leads_from_when_its_cut_in_is_foreseen():
+    occ, poses = history([cut_in()])
+    scene = forecast_scene(occ, poses, GRID, 6)
+    (now,) = leaders(scene, PATH, (0.0,), CheckConfig(), 3.0)
+    (early,) = leaders(scene, PATH, (0.0,), CheckConfig(anticipate_s=3.0), 3.0)
+    front = np.array([FRONT])
+    gap_now, _ = now.nearest(0, front, V)
+    gap_early, speed = early.nearest(0, front, V)
+    assert np.isinf(gap_now[0])  # not in the corridor yet
+    # Led by from now on, where it is along the path now (its rear cell's centre), at its speed
+    # along the path.
+    rear = (
+        GRID.range_min[0]
+        + (np.floor((14.0 - GRID.range_min[0]) / GRID.voxel_size[0]) + 0.5) * GRID.voxel_size[0]
+    )
+    assert abs(gap_early[0] - (rear - FRONT)) < 0.5 and abs(speed[0] - V) < 0.5
+    # Once in the corridor it leads either way, at the same gap.
+    i = int(np.flatnonzero(np.isfinite(now.arc).any(1))[0])
+    assert 0 < i <= 30
+    g1, _ = now.nearest(i, front, V)
+    g2, _ = early.nearest(i, front, V)
+    np.testing.assert_allclose(g1, g2)
+
+
+def test_an_idm_run_behind_a_foreseen_cut_in_brakes_earlier_and_gentler():
+    # A slower car (7 m/s) 20 m ahead cutting in: followed only once it is in the lane, IDM
+    # brakes beyond NAVSIM's comfort bound (-4.05 m/s^2); followed from when it is foreseen,
+    # within it, from the start.
+    slow = (CAR, lambda t: (20.0 + 7.0 * t, -4.0 + 1.5 * t), (3, 1))
+    occ, poses = history([slow])
+    scene = forecast_scene(occ, poses, GRID, 6)
+    first, hardest = {}, {}
+    for ahead in (0.0, 3.0):
+        cfg = CheckConfig(anticipate_s=ahead)
+        (lead,) = leaders(scene, PATH, (0.0,), cfg, 3.0)
+        s = idm_arc(V, [V], lead, cfg, 30, 0.1)[0]  # 10 Hz
+        v = np.diff(np.r_[0.0, s]) / 0.1
+        decel = -np.diff(np.r_[V, v]) / 0.1
+        first[ahead] = int(np.argmax(decel > 0.5))
+        hardest[ahead] = decel.max()
+    assert first[3.0] == 0 and first[0.0] >= 10  # brakes now, not a second or more later
+    assert hardest[0.0] > 5.0 and hardest[3.0] < 4.0
+
+
+def test_a_pedestrian_the_ego_will_have_passed_does_not_lead():
+    # 10 m ahead, 5 m to the right, walking towards the lane: inside the corridor in about 3 s.
+    ped = (PED, lambda t: (10.0, -5.6 + 1.5 * t), (1, 1))
+    occ, poses = history([ped], road_half_width=8.0)
+    scene = forecast_scene(occ, poses, GRID, 6)
+    (lead,) = leaders(scene, PATH, (0.0,), CheckConfig(anticipate_s=3.0), 3.0)
+    front = np.array([FRONT])
+    gap_fast, _ = lead.nearest(0, front, V)  # at 10 m/s the ego is long past by then
+    gap_slow, _ = lead.nearest(0, front, 0.5)  # at a crawl it is not
+    assert np.isinf(gap_fast[0]) and np.isfinite(gap_slow[0])
+    assert gap_slow[0] < 10.0 - FRONT + 1.0 + 1e-9
+
+
+def test_the_plan_is_held_back_for_a_cut_in_from_when_it_is_foreseen():
+    occ, poses = history([cut_in()])
+    plan = straight_plan()
+    off = check_plan(occ, poses, plan, GRID, CheckConfig(anticipate_s=0.0)).candidates
+    on = check_plan(occ, poses, plan, GRID, CheckConfig(anticipate_s=3.0)).candidates
+    # The plan's own candidate, held back by IDM behind the car from now on, is nearer at 1 s.
+    assert on.waypoints[0, 1, 0] < off.waypoints[0, 1, 0] - 0.2
+    assert CheckConfig().anticipate_s > 0  # the planner's default anticipates
+
+
+def test_the_constant_acceleration_heuristic_is_the_kinematic_need():
+    from renderworld.planning.idm import cah_accel
+
+    # Closing at 4 m/s on a leader holding its speed 8 m ahead: 4^2 / (2 x 8) = 1 m/s^2.
+    np.testing.assert_allclose(cah_accel(np.r_[10.0], np.r_[6.0], np.r_[0.0], np.r_[8.0], 1.5),
+                               [-1.0])  # fmt: skip
+    # Not closing: no braking needed.
+    assert cah_accel(np.r_[6.0], np.r_[10.0], np.r_[0.0], np.r_[8.0], 1.5)[0] == 0.0
+    # A leader braking at 4 m/s^2 from the same speed, 10 m ahead: brake as hard as it does.
+    np.testing.assert_allclose(cah_accel(np.r_[10.0], np.r_[10.0], np.r_[-4.0], np.r_[10.0],
+                                         1.5), [-4.0 * 100 / (100 + 80)])  # fmt: skip
+
+
+def test_the_acc_model_brakes_firmly_not_hard_for_a_close_car_cutting_in_not_much_slower():
+    # A car at 8 m/s cutting in 8 m ahead of the ego's front bumper (at 10 m/s), in the lane
+    # from the start: IDM over-reacts (its desired gap is 22 m: an emergency stop at the clip);
+    # the ACC model brakes firmly, within NAVSIM's comfort bound, and still stays behind it.
+    car = (CAR, lambda t: (FRONT + 8.0 + 8.0 * t, -0.8), (3, 2))
+    occ, poses = history([car])
+    scene = forecast_scene(occ, poses, GRID, 6)
+    hardest, end = {}, {}
+    for cool in (0.0, 0.99):
+        cfg = CheckConfig(acc_coolness=cool)
+        (lead,) = leaders(scene, PATH, (0.0,), cfg, 3.0)
+        s = idm_arc(V, [V], lead, cfg, 30, 0.1)[0]
+        v = np.diff(np.r_[0.0, s]) / 0.1
+        hardest[cool] = (-np.diff(np.r_[V, v]) / 0.1).max()
+        gap = lead.nearest(29, np.array([s[-1] + FRONT]))[0][0]
+        end[cool] = gap
+    assert hardest[0.0] > 7.9 and hardest[0.99] < 4.05
+    assert end[0.99] > 2.0  # the standstill gap s0 is kept
