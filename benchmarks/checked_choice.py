@@ -1,0 +1,164 @@
+"""Why a checked plan departs from the learned one in open loop: the choice, window by window.
+
+Evaluates a world-model checkpoint with ``tools/eval.py``'s code (the GT-command row) and
+records, for every window's checked plan (:func:`renderworld.planning.checked.check_plan`):
+the chosen candidate's kind and offset, the learned plan's own candidate (the first: the plan,
+held back by IDM behind a leader where it closes in) and its sub-scores, and the L2 at 3 s to
+the ground truth of the raw plan, of the plan's candidate and of the chosen one. Prints:
+
+* per chosen kind: windows, mean L2 at 3 s of the raw and of the checked plan;
+* where the learned plan lost: which of its sub-scores failed (NC, DAC, TTC, C, EP < 0.8);
+* where it won but was held back: how much the hold-back cost in L2.
+
+Score development splits with it, not test splits. ``--check KNOB=VALUE`` sets
+:class:`~renderworld.planning.candidates.CheckConfig` knobs (as ``tools/eval.py check=``).
+
+Usage::
+
+    python benchmarks/checked_choice.py --data-root data/sim_dev --split all \\
+        --tokenizer outputs/demo/tokenizer/checkpoints/last.pt \\
+        --world-model outputs/demo/world_model/checkpoints/last.pt --out outputs/checked_choice
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import renderworld.planning.checked as checked_mod  # noqa: E402
+import renderworld.training.stages.world_model.pose_warp as wmp  # noqa: E402
+from renderworld.training import evaluate  # noqa: E402
+
+
+def window_record(result, raw: np.ndarray, future: np.ndarray, valid: np.ndarray) -> dict:
+    """One window's choice as a dict (module docstring).
+
+    Args:
+        result: the window's :class:`~renderworld.planning.checked.CheckedPlan`.
+        raw: [S, 2] the learned plan, metres, current ego frame.
+        future: [S, 2] the ground-truth future positions.
+        valid: [S] bool, steps inside the scene.
+    """
+    c = result.candidates
+    last = int(np.flatnonzero(valid)[-1]) if valid.any() else -1
+
+    def l2(xy):
+        return float(np.hypot(*(xy[last] - future[last]))) if last >= 0 else float("nan")
+
+    b = c.best
+    held = not np.allclose(c.waypoints[0, 1:], raw[1:], atol=1e-3)  # the first: its start moved
+    return {
+        "kind": c.kind[b], "offset": float(c.offset_m[b]), "horizon_step": last,
+        "l2_raw": l2(raw), "l2_checked": l2(result.trajectory), "l2_plan_cand": l2(c.waypoints[0]),
+        "plan_held": bool(held),
+        "plan": {k: float(getattr(c, k)[0]) for k in ("NC", "DAC", "EP", "TTC", "C", "score")},
+        "plan_choice": float(c.choice[0]),
+        "best": {k: float(getattr(c, k)[b]) for k in ("NC", "DAC", "EP", "TTC", "C", "score")},
+        "best_choice": float(c.choice[b]),
+    }  # fmt: skip
+
+
+def summary(records: list[dict]) -> str:
+    """Markdown tables of one command's records (module docstring)."""
+    full = [r for r in records if r["horizon_step"] == 5]
+    lines = [f"{len(records)} windows, {len(full)} with the full 3 s horizon (tables: those)", ""]
+    lines += ["| chosen | windows | L2 at 3 s raw (m) | checked (m) | plan's candidate (m) |",
+              "|---|---|---|---|---|"]  # fmt: skip
+    groups = defaultdict(list)
+    for r in full:
+        groups[r["kind"] if r["kind"] != "plan" or r["offset"] else "plan, no offset"].append(r)
+    groups["all"] = full
+    for kind, rs in sorted(groups.items(), key=lambda kv: (kv[0] == "all", -len(kv[1]))):
+        m = {k: np.mean([r[k] for r in rs]) for k in ("l2_raw", "l2_checked", "l2_plan_cand")}
+        lines.append(f"| {kind} | {len(rs)} | {m['l2_raw']:.2f} | {m['l2_checked']:.2f} "
+                     f"| {m['l2_plan_cand']:.2f} |")  # fmt: skip
+    lost = [r for r in full if r["kind"] != "plan" or r["offset"]]
+    fails = defaultdict(int)
+    for r in lost:
+        p = r["plan"]
+        why = [k for k in ("NC", "DAC", "TTC", "C") if p[k] < 1] + (["EP"] if p["EP"] < 0.8 else [])
+        fails[", ".join(why) or "none (a margin)"] += 1
+    lines += ["", f"The learned plan lost in {len(lost)} windows; its failed sub-scores:", "",
+              "| failed | windows |", "|---|---|"]  # fmt: skip
+    lines += [f"| {k} | {v} |" for k, v in sorted(fails.items(), key=lambda kv: -kv[1])]
+    held = [r for r in full if r["kind"] == "plan" and not r["offset"] and r["plan_held"]]
+    if held:
+        lines += ["", f"The plan won but was held back by IDM in {len(held)} windows: L2 at 3 s "
+                  f"raw {np.mean([r['l2_raw'] for r in held]):.2f} m, held "
+                  f"{np.mean([r['l2_checked'] for r in held]):.2f} m"]  # fmt: skip
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data-root", required=True)
+    ap.add_argument("--version", default="v1.0-mini")
+    ap.add_argument("--split", default="all", help="dataset.val_split (dev: all)")
+    ap.add_argument("--tokenizer", required=True)
+    ap.add_argument("--world-model", required=True)
+    ap.add_argument("--check", nargs="*", default=[], help="CheckConfig knobs, KNOB=VALUE")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--out", default="outputs/checked_choice")
+    args = ap.parse_args()
+    for name in ("tokenizer", "world_model"):
+        if not Path(getattr(args, name)).is_file():
+            raise SystemExit(f"--{name.replace('_', '-')}: no file {getattr(args, name)!r}")
+    from hydra import compose, initialize_config_dir
+
+    records: list[dict] = []
+    pending: list = []
+    original_check, original_checked = checked_mod.check_plan, wmp.checked_plans
+
+    def check_plan(*a, **k):
+        result = original_check(*a, **k)
+        pending.append(result)
+        return result
+
+    calls = [0]
+
+    def checked_plans(stage, model, batch, setting, poses):
+        # Called twice per batch: the GT command's plans first, then the history command's.
+        pending.clear()
+        out = original_checked(stage, model, batch, setting, poses)
+        command = ("gt", "history")[calls[0] % 2]
+        calls[0] += 1
+        fut = batch["future_poses"][..., :2].double().cpu().numpy()
+        valid = batch["future_mask"].bool().cpu().numpy()[:, : fut.shape[1]]
+        raw = poses[..., :2].double().cpu().numpy()
+        for i, res in enumerate(pending):
+            records.append({"command": command, **window_record(res, raw[i], fut[i], valid[i])})
+        return out
+
+    checked_mod.check_plan, wmp.checked_plans = check_plan, checked_plans
+    run_dir = Path(args.out).resolve()
+    overrides = [
+        "experiment=world_model_mini",
+        f"dataset.data_root={Path(args.data_root).resolve()}",
+        f"dataset.version={args.version}", f"dataset.val_split={args.split}",
+        f"stage.tokenizer_ckpt={Path(args.tokenizer).resolve()}",
+        f"ckpt={Path(args.world_model).resolve()}",
+        f"trainer.num_threads={args.threads}", f"run_dir={run_dir}",
+    ]  # fmt: skip
+    if args.check:
+        overrides.append("check={" + ", ".join(kv.replace("=", ": ", 1) for kv in args.check) + "}")
+    try:
+        with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+            cfg = compose("eval", overrides=overrides)
+        evaluate(cfg)
+    finally:
+        checked_mod.check_plan, wmp.checked_plans = original_check, original_checked
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "checked_choice.json").write_text(json.dumps(records, indent=1))
+    print(summary([r for r in records if r["command"] == "gt"]))
+
+
+if __name__ == "__main__":
+    main()
