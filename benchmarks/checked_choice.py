@@ -122,10 +122,11 @@ def main() -> None:
         pending.append(result)
         return result
 
-    calls = [0]
+    calls, seen = [0], set()
 
     def checked_plans(stage, model, batch, setting, poses):
-        # Called twice per batch: the GT command's plans first, then the history command's.
+        # Called twice per batch: the GT command's plans first, then the history command's;
+        # the evaluation's pictures plan some windows again (kept once, by sample token).
         pending.clear()
         out = original_checked(stage, model, batch, setting, poses)
         command = ("gt", "history")[calls[0] % 2]
@@ -133,8 +134,12 @@ def main() -> None:
         fut = batch["future_poses"][..., :2].double().cpu().numpy()
         valid = batch["future_mask"].bool().cpu().numpy()[:, : fut.shape[1]]
         raw = poses[..., :2].double().cpu().numpy()
+        tokens = batch["meta"]["sample_tokens"][stage.settings.history - 1]
         for i, res in enumerate(pending):
-            records.append({"command": command, **window_record(res, raw[i], fut[i], valid[i])})
+            if (command, tokens[i]) not in seen:
+                seen.add((command, tokens[i]))
+                rec = window_record(res, raw[i], fut[i], valid[i])
+                records.append({"command": command, "token": tokens[i], **rec})
         return out
 
     checked_mod.check_plan, wmp.checked_plans = check_plan, checked_plans
