@@ -205,7 +205,8 @@ def idm_arc(v_now, targets, lead: Leaders, cfg, steps, dt) -> np.ndarray:
     for k in range(steps):
         for j in range(n_sub):
             acc = cfg.a_max * (1 - (v / v0) ** 4)
-            gap, v_l, a_l = lead.nearest(k * n_sub + j, s + FRONT, v, with_accel=True)
+            found = lead.nearest(k * n_sub + j, s + FRONT, v, with_accel=cool > 0)
+            gap, v_l = found[:2]
             has = np.isfinite(gap)
             if has.any():
                 g = np.maximum(np.where(has, gap, 1.0), 0.05)
@@ -213,7 +214,7 @@ def idm_arc(v_now, targets, lead: Leaders, cfg, steps, dt) -> np.ndarray:
                 s_star = cfg.s0 + v * cfg.headway + v * dv / (2 * np.sqrt(cfg.a_max * cfg.b))
                 acc = acc - np.where(has, cfg.a_max * (np.maximum(s_star, 0.0) / g) ** 2, 0.0)
                 if cool > 0:
-                    cah = cah_accel(v, v_l, a_l, g, cfg.a_max)
+                    cah = cah_accel(v, v_l, found[2], g, cfg.a_max)
                     blend = (1 - cool) * acc + cool * (cah + cfg.b * np.tanh((acc - cah) / cfg.b))
                     acc = np.where(has & (acc < cah), blend, acc)
             acc = np.maximum(acc, cfg.idm_min_accel)

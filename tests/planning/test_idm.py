@@ -16,6 +16,15 @@ from .test_checked import CAR, GRID, PED, V, history, straight_plan
 PATH = PlanPath(np.stack([np.arange(0, 40.0, 5.0), np.zeros(8)], 1), 60.0)
 
 
+def idm_run(scene, cfg):
+    """(arc lengths [30] m, decelerations [30] m/s^2) of a 10 Hz IDM run at the ego's speed along
+    PATH behind ``scene``'s leaders, and those leaders."""
+    (lead,) = leaders(scene, PATH, (0.0,), cfg, 3.0)
+    s = idm_arc(V, [V], lead, cfg, 30, 0.1)[0]
+    v = np.diff(np.r_[0.0, s]) / 0.1
+    return s, -np.diff(np.r_[V, v]) / 0.1, lead
+
+
 def cut_in(lateral=1.0):
     """A car in the right-hand lane 14 m ahead at the ego's speed, drifting left into its lane
     at ``lateral`` m/s (its cells start 3.2 m right of the path)."""
@@ -55,11 +64,7 @@ def test_an_idm_run_behind_a_foreseen_cut_in_brakes_earlier_and_gentler():
     scene = forecast_scene(occ, poses, GRID, 6)
     first, hardest = {}, {}
     for ahead in (0.0, 3.0):
-        cfg = CheckConfig(anticipate_s=ahead)
-        (lead,) = leaders(scene, PATH, (0.0,), cfg, 3.0)
-        s = idm_arc(V, [V], lead, cfg, 30, 0.1)[0]  # 10 Hz
-        v = np.diff(np.r_[0.0, s]) / 0.1
-        decel = -np.diff(np.r_[V, v]) / 0.1
+        _, decel, _ = idm_run(scene, CheckConfig(anticipate_s=ahead))
         first[ahead] = int(np.argmax(decel > 0.5))
         hardest[ahead] = decel.max()
     assert first[3.0] == 0 and first[0.0] >= 10  # brakes now, not a second or more later
@@ -111,12 +116,8 @@ def test_the_acc_model_brakes_firmly_not_hard_for_a_close_car_cutting_in_not_muc
     scene = forecast_scene(occ, poses, GRID, 6)
     hardest, end = {}, {}
     for cool in (0.0, 0.99):
-        cfg = CheckConfig(acc_coolness=cool)
-        (lead,) = leaders(scene, PATH, (0.0,), cfg, 3.0)
-        s = idm_arc(V, [V], lead, cfg, 30, 0.1)[0]
-        v = np.diff(np.r_[0.0, s]) / 0.1
-        hardest[cool] = (-np.diff(np.r_[V, v]) / 0.1).max()
-        gap = lead.nearest(29, np.array([s[-1] + FRONT]))[0][0]
-        end[cool] = gap
+        s, decel, lead = idm_run(scene, CheckConfig(acc_coolness=cool))
+        hardest[cool] = decel.max()
+        end[cool] = lead.nearest(29, np.array([s[-1] + FRONT]))[0][0]
     assert hardest[0.0] > 7.9 and hardest[0.99] < 4.05
     assert end[0.99] > 2.0  # the standstill gap s0 is kept
