@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 
 import renderworld.planning.checked as checked_mod  # noqa: E402
 import renderworld.training.stages.world_model.pose_warp as wmp  # noqa: E402
-from renderworld.training import evaluate  # noqa: E402
+from benchmarks.dev_eval import add_eval_args, check_files, evaluate_world_model  # noqa: E402
 
 
 def window_record(result, raw: np.ndarray, future: np.ndarray, valid: np.ndarray) -> dict:
@@ -99,19 +99,10 @@ def summary(records: list[dict]) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data-root", required=True)
-    ap.add_argument("--version", default="v1.0-mini")
-    ap.add_argument("--split", default="all", help="dataset.val_split (dev: all)")
-    ap.add_argument("--tokenizer", required=True)
-    ap.add_argument("--world-model", required=True)
+    add_eval_args(ap, "outputs/checked_choice")
     ap.add_argument("--check", nargs="*", default=[], help="CheckConfig knobs, KNOB=VALUE")
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--out", default="outputs/checked_choice")
     args = ap.parse_args()
-    for name in ("tokenizer", "world_model"):
-        if not Path(getattr(args, name)).is_file():
-            raise SystemExit(f"--{name.replace('_', '-')}: no file {getattr(args, name)!r}")
-    from hydra import compose, initialize_config_dir
+    check_files(args)
 
     records: list[dict] = []
     pending: list = []
@@ -144,20 +135,9 @@ def main() -> None:
 
     checked_mod.check_plan, wmp.checked_plans = check_plan, checked_plans
     run_dir = Path(args.out).resolve()
-    overrides = [
-        "experiment=world_model_mini",
-        f"dataset.data_root={Path(args.data_root).resolve()}",
-        f"dataset.version={args.version}", f"dataset.val_split={args.split}",
-        f"stage.tokenizer_ckpt={Path(args.tokenizer).resolve()}",
-        f"ckpt={Path(args.world_model).resolve()}",
-        f"trainer.num_threads={args.threads}", f"run_dir={run_dir}",
-    ]  # fmt: skip
-    if args.check:
-        overrides.append("check={" + ", ".join(kv.replace("=", ": ", 1) for kv in args.check) + "}")
+    knobs = ", ".join(kv.replace("=", ": ", 1) for kv in args.check)
     try:
-        with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
-            cfg = compose("eval", overrides=overrides)
-        evaluate(cfg)
+        evaluate_world_model(args, run_dir, *([f"check={{{knobs}}}"] if args.check else []))
     finally:
         checked_mod.check_plan, wmp.checked_plans = original_check, original_checked
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import renderworld.training.stages.world_model.pose_warp as wmp  # noqa: E402
-from renderworld.training import evaluate  # noqa: E402
+from benchmarks.dev_eval import add_eval_args, check_files, evaluate_world_model  # noqa: E402
 from renderworld.world import constant_turn_rate_poses  # noqa: E402
 
 MODES = ("model", "gt_yaw", "gt_xy", "ctr_yaw", "path_yaw")
@@ -113,35 +113,17 @@ def _model_row(csv_path: Path) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data-root", required=True)
-    ap.add_argument("--version", default="v1.0-mini")
-    ap.add_argument("--split", default="all", help="dataset.val_split (dev: all)")
-    ap.add_argument("--tokenizer", required=True)
-    ap.add_argument("--world-model", required=True)
+    add_eval_args(ap, "outputs/pose_error_split")
     ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--out", default="outputs/pose_error_split")
     args = ap.parse_args()
-    for name in ("tokenizer", "world_model"):
-        if not Path(getattr(args, name)).is_file():
-            raise SystemExit(f"--{name.replace('_', '-')}: no file {getattr(args, name)!r}")
-    from hydra import compose, initialize_config_dir
+    check_files(args)
 
     rows = {}
     for mode in args.modes:
         original = _patch(mode)
         run_dir = Path(args.out).resolve() / mode
         try:
-            with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
-                cfg = compose("eval", overrides=[
-                    "experiment=world_model_mini",
-                    f"dataset.data_root={Path(args.data_root).resolve()}",
-                    f"dataset.version={args.version}", f"dataset.val_split={args.split}",
-                    f"stage.tokenizer_ckpt={Path(args.tokenizer).resolve()}",
-                    f"ckpt={Path(args.world_model).resolve()}",
-                    f"trainer.num_threads={args.threads}", f"run_dir={run_dir}",
-                ])  # fmt: skip
-            evaluate(cfg)
+            evaluate_world_model(args, run_dir)
         finally:
             wmp.pose_forecast = original
         rows[mode] = _model_row(run_dir / "world_model_eval.csv")
