@@ -58,6 +58,8 @@ class CheckConfig:
         acc_coolness: 0 (plain IDM), or the coolness of the ACC model (the Enhanced IDM; 0.99
             in its paper): IDM's over-reaction to a close but not much slower leader is
             softened towards what the constant-acceleration heuristic needs.
+        idm_plus: IDM+ instead of IDM (:func:`renderworld.planning.idm.idm_arc`): no braking
+            at the desired speed behind a leader beyond the desired gap.
         soft_min_accel: None, or also the IDM runs with their braking clipped here instead
             (kind ``idm_soft``; e.g. -4.0, inside NAVSIM's comfort bound), m/s^2 (negative).
         corridor_margin_m: corridor half-width beyond the ego's, metres.
@@ -119,6 +121,11 @@ class CheckConfig:
             distance it drives, unless the plan is stalled: going straight on where the plan
             turns makes less progress. Off: the turns gained progress, but comfort, cruise and
             overtaking lost, on the test splits and on the route scenes (docs/planner.md).
+        spline_tracking: candidates are tracked along the C2 spline through their waypoints
+            (:func:`~renderworld.planning.kinematics.hermite_tangents`) instead of the
+            simulator's Catmull-Rom curve, whose heading rate jumps at every waypoint: the car
+            re-plans every 0.5 s and never drives a plan's later waypoints. Off: the turns
+            gained, the interaction scenes lost (docs/planner.md).
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -130,6 +137,7 @@ class CheckConfig:
     headway: float = 1.5
     idm_min_accel: float = -8.0
     acc_coolness: float = 0.0
+    idm_plus: bool = False
     soft_min_accel: float | None = None
     corridor_margin_m: float = 0.3
     anticipate_s: float = 1.5
@@ -157,6 +165,7 @@ class CheckConfig:
     steady_path: bool = True
     comfort_prefixes_s: tuple[float, ...] = ()
     progress_along_plan: bool = False
+    spline_tracking: bool = False
 
 
 def check_config(overrides, name: str = "check") -> CheckConfig:

@@ -197,7 +197,7 @@ def score_candidates(
     steps = int(round(s * dt / SIM_DT))
     speed = float(past[-1, 3])
     start = np.tile([0.0, 0.0, 0.0, speed], (n, 1))
-    states, _ = track_plans(start, wp, limits, steps)
+    states, _ = track_plans(start, wp, limits, steps, spline=cfg.spline_tracking)
     n_ttc = int(round(cfg.ttc_horizon_s / SIM_DT))
     times = np.arange(1, steps + n_ttc + 1) * SIM_DT
     keep = _relevant(scene, states, times)

@@ -193,7 +193,10 @@ def idm_arc(v_now, targets, lead: Leaders, cfg, steps, dt) -> np.ndarray:
     With ``cfg.acc_coolness`` c > 0 the runs follow the ACC model (the Enhanced IDM; Kesting,
     Treiber, Helbing 2010) instead: where IDM brakes harder than the constant-acceleration
     heuristic needs (a car cutting in close but not much slower), the acceleration is
-    ``(1 - c) a_IDM + c [a_CAH + b tanh((a_IDM - a_CAH) / b)]``: firm, not an emergency stop."""
+    ``(1 - c) a_IDM + c [a_CAH + b tanh((a_IDM - a_CAH) / b)]``: firm, not an emergency stop.
+    With ``cfg.idm_plus`` the IDM acceleration is IDM+'s (Schakel, Knoop, van Arem 2010):
+    ``a_max min(1 - (v/v0)^4, 1 - (s*/s)^2)``, so a car at its desired speed does not brake for
+    a leader farther than the desired gap (IDM's sum brakes for any leader there)."""
     f = len(targets)
     v = np.full(f, v_now, dtype=np.float64)
     s = np.zeros(f)
@@ -212,7 +215,11 @@ def idm_arc(v_now, targets, lead: Leaders, cfg, steps, dt) -> np.ndarray:
                 g = np.maximum(np.where(has, gap, 1.0), 0.05)
                 dv = v - v_l
                 s_star = cfg.s0 + v * cfg.headway + v * dv / (2 * np.sqrt(cfg.a_max * cfg.b))
-                acc = acc - np.where(has, cfg.a_max * (np.maximum(s_star, 0.0) / g) ** 2, 0.0)
+                inter = cfg.a_max * (np.maximum(s_star, 0.0) / g) ** 2
+                if cfg.idm_plus:  # IDM+: the smaller of the free-road and the interaction terms
+                    acc = np.where(has, np.minimum(acc, cfg.a_max - inter), acc)
+                else:
+                    acc = acc - np.where(has, inter, 0.0)
                 if cool > 0:
                     cah = cah_accel(v, v_l, found[2], g, cfg.a_max)
                     blend = (1 - cool) * acc + cool * (cah + cfg.b * np.tanh((acc - cah) / cfg.b))

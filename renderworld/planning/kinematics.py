@@ -5,7 +5,10 @@ the rear axle, as every ego pose of the package). Between two plans (one keyfram
 advanced in :data:`SIM_DT` steps toward a reference: a cubic Hermite curve in time through the
 current position (with the current velocity) and the plan's waypoints (velocities by central
 differences, capped as in Fritsch-Carlson's monotone cubic so that it never overshoots a stop),
-so a plan the car can drive is driven as planned. Each step:
+so a plan the car can drive is driven as planned. With ``spline=True`` the tangents at the
+waypoints are instead those of the C2 cubic spline (the current velocity at the start, zero
+acceleration at the end): the acceleration, hence the heading rate, does not jump at a waypoint
+(the forecast-checked planner judges its candidates' comfort on it). Each step:
 
 * the reference pose at the next step (position, heading along the curve) is taken as is when
   reaching it is **feasible**: speed <= ``max_speed``, longitudinal acceleration within
@@ -28,7 +31,14 @@ import numpy as np
 
 from renderworld.constants import KEYFRAME_DT
 
-__all__ = ["SIM_DT", "STEPS_PER_KEYFRAME", "KinematicLimits", "EgoState", "track_plan"]
+__all__ = [
+    "SIM_DT",
+    "STEPS_PER_KEYFRAME",
+    "KinematicLimits",
+    "EgoState",
+    "hermite_tangents",
+    "track_plan",
+]
 
 #: Simulation step, seconds (10 Hz): tracking, collisions and scores run at this rate.
 SIM_DT = 0.1
@@ -92,13 +102,65 @@ def _hermite(p0, p1, v0, v1, u, h):
     return pos, der
 
 
-def reference(state: EgoState, waypoints: np.ndarray, steps: int) -> tuple[np.ndarray, np.ndarray]:
+def hermite_tangents(pts: np.ndarray, v0: np.ndarray, h: float, spline: bool) -> np.ndarray:
+    """Velocities at the knots of the tracked reference curve (module docstring).
+
+    Catmull-Rom (central differences, the last one backwards), or with ``spline`` the C2 cubic
+    spline's (tridiagonal solve by the Thomas algorithm: elementwise, so one plan and a batch
+    give the same bits), then capped as Fritsch-Carlson's monotone cubic.
+
+    Args:
+        pts: [..., M >= 2, 2] the current position and the waypoints, metres.
+        v0: [..., 2] the current velocity, m/s.
+        h: seconds between knots.
+        spline: C2 spline tangents instead of Catmull-Rom's.
+
+    Returns:
+        [..., M, 2] m/s.
+    """
+    m = pts.shape[-2]
+    vel = np.empty_like(pts)
+    vel[..., 0, :] = v0
+    if spline:  # v[i-1] + 4 v[i] + v[i+1] = 3 (p[i+1] - p[i-1]) / h; v[M-2] + 2 v[M-1] = ...
+        diag = np.full(m, 4.0)
+        diag[-1] = 2.0
+        rhs = np.empty_like(pts)
+        rhs[..., 1:-1, :] = 3.0 * (pts[..., 2:, :] - pts[..., :-2, :]) / h
+        rhs[..., -1, :] = 3.0 * (pts[..., -1, :] - pts[..., -2, :]) / h
+        rhs[..., 1, :] -= v0
+        upper = np.zeros(m)
+        upper[1] = 1.0 / diag[1]
+        rhs[..., 1, :] /= diag[1]
+        for i in range(2, m):
+            den = diag[i] - upper[i - 1]
+            upper[i] = 1.0 / den
+            rhs[..., i, :] = (rhs[..., i, :] - rhs[..., i - 1, :]) / den
+        vel[..., -1, :] = rhs[..., -1, :]
+        for i in range(m - 2, 0, -1):
+            vel[..., i, :] = rhs[..., i, :] - upper[i] * vel[..., i + 1, :]
+    else:
+        vel[..., 1:-1, :] = (pts[..., 2:, :] - pts[..., :-2, :]) / (2 * h)
+        vel[..., -1, :] = (pts[..., -1, :] - pts[..., -2, :]) / h
+    # Fritsch-Carlson: a tangent at most 3x the shorter neighbouring segment's speed, so the
+    # curve never overshoots a waypoint where the plan slows down or stops.
+    seg = np.hypot(pts[..., 1:, 0] - pts[..., :-1, 0], pts[..., 1:, 1] - pts[..., :-1, 1]) / h
+    inf = np.full(seg.shape[:-1] + (1,), np.inf)
+    cap = 3.0 * np.minimum(np.concatenate([inf, seg], -1), np.concatenate([seg, inf], -1))
+    norm = np.hypot(vel[..., 0], vel[..., 1])
+    vel *= np.where(norm > cap, cap / np.maximum(norm, 1e-12), 1.0)[..., None]
+    return vel
+
+
+def reference(
+    state: EgoState, waypoints: np.ndarray, steps: int, spline: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
     """The tracked reference at the next ``steps`` simulation steps.
 
     Args:
         state: the current ego state.
         waypoints: [S, 2] scene-frame positions at +0.5 ... +S/2 s.
         steps: how many :data:`SIM_DT` steps (at most ``S`` keyframes' worth).
+        spline: C2 spline tangents (module docstring) instead of Catmull-Rom's.
 
     Returns:
         (positions [steps, 2], headings [steps]) in the scene frame; a heading where the
@@ -106,16 +168,8 @@ def reference(state: EgoState, waypoints: np.ndarray, steps: int) -> tuple[np.nd
     """
     pts = np.concatenate([state.xy[None], np.asarray(waypoints, dtype=np.float64)])
     h = KEYFRAME_DT
-    vel = np.empty_like(pts)
-    vel[0] = state.speed * np.array([np.cos(state.yaw), np.sin(state.yaw)])
-    vel[1:-1] = (pts[2:] - pts[:-2]) / (2 * h)
-    vel[-1] = (pts[-1] - pts[-2]) / h
-    # Fritsch-Carlson: a tangent at most 3x the shorter neighbouring segment's speed, so the
-    # curve never overshoots a waypoint where the plan slows down or stops.
-    seg = np.hypot(*np.diff(pts, axis=0).T) / h
-    cap = 3.0 * np.minimum(np.r_[np.inf, seg], np.r_[seg, np.inf])
-    norm = np.hypot(*vel.T)
-    vel *= np.where(norm > cap, cap / np.maximum(norm, 1e-12), 1.0)[:, None]
+    v0 = state.speed * np.array([np.cos(state.yaw), np.sin(state.yaw)])
+    vel = hermite_tangents(pts[None], v0[None], h, spline)[0]
     out_p = np.empty((steps, 2))
     out_h = np.empty(steps)
     heading = state.yaw
@@ -173,7 +227,11 @@ def _saturate(state: EgoState, p: np.ndarray, yaw: float, lim: KinematicLimits) 
 
 
 def track_plan(
-    state: EgoState, waypoints: np.ndarray, limits: KinematicLimits, steps: int
+    state: EgoState,
+    waypoints: np.ndarray,
+    limits: KinematicLimits,
+    steps: int,
+    spline: bool = False,
 ) -> tuple[list[EgoState], int]:
     """Advance the ego ``steps`` simulation steps along a plan.
 
@@ -182,11 +240,12 @@ def track_plan(
         waypoints: [S, 2] scene-frame positions at +0.5 ... +S/2 s (finite).
         limits: the car's limits.
         steps: simulation steps to run (e.g. :data:`STEPS_PER_KEYFRAME`).
+        spline: track the C2 spline through the waypoints (module docstring).
 
     Returns:
         (the states after each step [steps], how many steps saturated a limit).
     """
-    ref_p, ref_h = reference(state, waypoints, steps)
+    ref_p, ref_h = reference(state, waypoints, steps, spline)
     out, saturated = [], 0
     for p, yaw in zip(ref_p, ref_h):
         if _feasible(state, p, float(yaw), limits):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from renderworld.constants import KEYFRAME_DT
-from renderworld.planning.kinematics import SIM_DT, KinematicLimits
+from renderworld.planning.kinematics import SIM_DT, KinematicLimits, hermite_tangents
 
 __all__ = ["reference_batch", "track_plans"]
 
@@ -22,7 +22,7 @@ def _wrap(a):
 
 
 def reference_batch(
-    states: np.ndarray, waypoints: np.ndarray, steps: int
+    states: np.ndarray, waypoints: np.ndarray, steps: int, spline: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
     """The reference curves of N plans (:func:`renderworld.planning.kinematics.reference`).
 
@@ -30,6 +30,8 @@ def reference_batch(
         states: [N, 4] (x, y, yaw, speed): metres, radians, m/s, one frame for all.
         waypoints: [N, S, 2] positions at +0.5 ... +S/2 s in that frame.
         steps: simulation steps (:data:`SIM_DT` each), at most ``S`` keyframes' worth.
+        spline: C2 spline tangents instead of Catmull-Rom's
+            (:func:`~renderworld.planning.kinematics.hermite_tangents`).
 
     Returns:
         (positions [N, steps, 2], headings [N, steps]).
@@ -38,15 +40,8 @@ def reference_batch(
     pts = np.concatenate([st[:, None, :2], np.asarray(waypoints, dtype=np.float64)], axis=1)
     n, m = pts.shape[:2]
     h = KEYFRAME_DT
-    vel = np.empty_like(pts)
-    vel[:, 0] = st[:, 3:4] * np.stack([np.cos(st[:, 2]), np.sin(st[:, 2])], -1)
-    vel[:, 1:-1] = (pts[:, 2:] - pts[:, :-2]) / (2 * h)
-    vel[:, -1] = (pts[:, -1] - pts[:, -2]) / h
-    seg = np.hypot(*np.moveaxis(np.diff(pts, axis=1), -1, 0)) / h  # [N, M-1]
-    inf = np.full((n, 1), np.inf)
-    cap = 3.0 * np.minimum(np.concatenate([inf, seg], 1), np.concatenate([seg, inf], 1))
-    norm = np.hypot(vel[..., 0], vel[..., 1])
-    vel *= np.where(norm > cap, cap / np.maximum(norm, 1e-12), 1.0)[..., None]
+    v0 = st[:, 3:4] * np.stack([np.cos(st[:, 2]), np.sin(st[:, 2])], -1)
+    vel = hermite_tangents(pts, v0, h, spline)
     out_p = np.empty((n, steps, 2))
     out_h = np.empty((n, steps))
     heading = st[:, 2].copy()
@@ -67,7 +62,11 @@ def reference_batch(
 
 
 def track_plans(
-    states: np.ndarray, waypoints: np.ndarray, limits: KinematicLimits, steps: int
+    states: np.ndarray,
+    waypoints: np.ndarray,
+    limits: KinematicLimits,
+    steps: int,
+    spline: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Advance N ego states ``steps`` simulation steps along N plans.
 
@@ -77,6 +76,7 @@ def track_plans(
         waypoints: [N, S, 2] finite positions at +0.5 ... +S/2 s in the same frame.
         limits: the car's limits.
         steps: simulation steps to run.
+        spline: track the C2 spline through the waypoints (as ``track_plan``'s ``spline``).
 
     Returns:
         (states after each step [N, steps, 4], steps that saturated a limit [N] int).
@@ -90,7 +90,7 @@ def track_plans(
         raise ValueError(f"states: expected [N, 4] (x, y, yaw, speed), got {st.shape}")
     if wp.ndim != 3 or wp.shape[0] != st.shape[0] or wp.shape[2] != 2 or wp.shape[1] < 1:
         raise ValueError(f"waypoints: expected [{st.shape[0]}, S >= 1, 2], got {wp.shape}")
-    ref_p, ref_h = reference_batch(st, wp, steps)
+    ref_p, ref_h = reference_batch(st, wp, steps, spline)
     lim = limits
     x, y, yaw, v = (st[:, i].copy() for i in range(4))
     out = np.empty((st.shape[0], steps, 4))

@@ -121,3 +121,19 @@ def test_the_acc_model_brakes_firmly_not_hard_for_a_close_car_cutting_in_not_muc
         end[cool] = lead.nearest(29, np.array([s[-1] + FRONT]))[0][0]
     assert hardest[0.0] > 7.9 and hardest[0.99] < 4.05
     assert end[0.99] > 2.0  # the standstill gap s0 is kept
+
+
+def test_idm_plus_does_not_brake_at_its_speed_behind_a_car_pulling_away():
+    # A car at 13 m/s 14 m ahead of the front bumper, in the lane: at its desired speed (10 m/s)
+    # IDM brakes for it all the same (its free-road term is 0, the interaction term is not);
+    # IDM+ keeps its speed. Behind a slower car (7 m/s) both brake.
+    hardest = {}
+    for v_lead in (13.0, 7.0):
+        car = (CAR, lambda t, v=v_lead: (FRONT + 14.0 + v * t, -0.8), (3, 2))
+        occ, poses = history([car])
+        scene = forecast_scene(occ, poses, GRID, 6)
+        for plus in (False, True):
+            _, decel, _ = idm_run(scene, CheckConfig(idm_plus=plus))
+            hardest[v_lead, plus] = decel.max()
+    assert hardest[13.0, False] > 0.3 and abs(hardest[13.0, True]) < 1e-6, hardest
+    assert hardest[7.0, False] > 1.0 and hardest[7.0, True] > 1.0, hardest
