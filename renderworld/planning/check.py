@@ -75,6 +75,8 @@ class CandidateScores:
         progress_m: [N] distance driven (or with ``progress_along_plan`` the arc reached along
             the plan's path), metres.
         first_contact_s: [N] time of the first contact with the forecast (inf: none).
+        comfort_excess: [N] the worst comfort quantity as a fraction of its NAVSIM bound (>= 1:
+            uncomfortable, C = 0), and ``comfort_worst`` [N] its name.
         choice: [N] what the choice maximises: the score less the offset, change and
             discomfort costs (module docstring); all equal to the score where every score is 0.
         best: index of the chosen candidate.
@@ -95,15 +97,21 @@ class CandidateScores:
     first_contact_s: np.ndarray
     choice: np.ndarray
     best: int
+    comfort_excess: np.ndarray | None = None
+    comfort_worst: list | None = None
 
     def table(self) -> list[dict]:
         """One dict per candidate (kind, offset, speed and every score), for printing."""
         keys = ("NC", "DAC", "EP", "TTC", "C", "score", "choice", "progress_m", "first_contact_s")
-        return [
+        rows = [
             {"kind": k, "offset_m": float(self.offset_m[i]), "speed": float(self.speed[i]),
              **{n: float(getattr(self, n)[i]) for n in keys}, "best": i == self.best}
             for i, k in enumerate(self.kind)
         ]  # fmt: skip
+        if self.comfort_excess is not None:
+            for r, x, w in zip(rows, self.comfort_excess, self.comfort_worst):
+                r["comfort_excess"], r["comfort_worst"] = float(x), str(w)
+        return rows
 
 
 def comfort_excess(
@@ -111,7 +119,8 @@ def comfort_excess(
     past: np.ndarray,
     stride: int = COMFORT_STRIDE,
     prefixes_s: tuple[float, ...] = (),
-) -> np.ndarray:
+    worst_name: bool = False,
+):
     """[N] how far each candidate's worst comfort quantity goes, as a fraction of its NAVSIM
     bound (:mod:`renderworld.planning.comfort`): below 1 is comfortable.
 
@@ -126,10 +135,14 @@ def comfort_excess(
     tapped and released; a fit over the first second reads its jerk. Stricter than the closed
     loop's 4 s windows on purpose: the next plans' motion, which fills the rest of those, is
     unknown here, and a candidate whose speed changes abruptly then gives way to a smooth one.
+
+    With ``worst_name`` it also returns, per candidate, the quantity that went furthest (a
+    :data:`~renderworld.planning.comfort.COMFORT_BOUNDS` key): ``(excess [N], names [N])``.
     """
     n = states.shape[0]
     past = np.broadcast_to(past[None], (n, *past.shape))
     worst = np.zeros(n)
+    names = np.full(n, next(iter(COMFORT_BOUNDS)), dtype=object)
     windows = [(a, COMFORT_WINDOW) for a in range(past.shape[1] - 1, -1, -stride)]
     windows += [(past.shape[1] - 1, int(round(s / SIM_DT)) + 1) for s in prefixes_s]
     for start, length in windows:
@@ -142,8 +155,10 @@ def comfort_excess(
             x = q[name][:, k:]
             ratio = np.maximum(np.where(x > 0, x / hi, x / lo), 0.0).max(1)
             outside = ~((x > lo) & (x < hi)).all(1)  # strictly inside, as NAVSIM judges
-            worst = np.maximum(worst, np.where(outside, np.maximum(ratio, 1.0), ratio))
-    return worst
+            value = np.where(outside, np.maximum(ratio, 1.0), ratio)
+            names = np.where(value > worst, name, names)
+            worst = np.maximum(worst, value)
+    return (worst, list(names)) if worst_name else worst
 
 
 def comfort_ok(states: np.ndarray, past: np.ndarray, stride: int = COMFORT_STRIDE) -> np.ndarray:
@@ -251,7 +266,7 @@ def score_candidates(
     else:
         ep = np.clip(progress / ref, 0.0, 1.0)
     ttc = (~ttc_bad).astype(float)
-    excess = comfort_excess(states, past, prefixes_s=cfg.comfort_prefixes_s)
+    excess, worst = comfort_excess(states, past, prefixes_s=cfg.comfort_prefixes_s, worst_name=True)
     c = (excess < 1.0).astype(float)
     score = nc * dac * (5 * ep + 5 * ttc + 2 * c) / 12
     if score.max() > 0:  # a lateral offset or a change of plan must buy more than it costs
@@ -276,4 +291,5 @@ def score_candidates(
         kind=list(cands.kind), offset_m=cands.offset_m, speed=cands.speed, waypoints=wp,
         states=states, NC=nc, DAC=dac.astype(float), EP=ep, TTC=ttc, C=c, score=score,
         progress_m=progress, first_contact_s=first, choice=choice, best=best,
+        comfort_excess=excess, comfort_worst=worst,
     )  # fmt: skip

@@ -91,6 +91,9 @@ def test_a_turn_into_a_junction_is_comfortable_along_the_spline_only():
     excess = {}
     for spline in (False, True):
         states, _ = track_plans(start, wp[None], KinematicLimits(), 30, spline)
-        excess[spline] = float(comfort_excess(states, past)[0])
+        worst, name = comfort_excess(states, past, worst_name=True)
+        excess[spline] = float(worst[0])
+        if not spline:
+            assert name == ["yaw_accel"]  # the quantity that broke its bound is named
         np.testing.assert_allclose(states[0, 4::5, :2], wp[:6], atol=0.05)  # both drive the plan
     assert excess[False] > 1.2 and excess[True] < 0.8, excess

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from renderworld.planning.comfort import COMFORT_BOUNDS
 from renderworld.sim.closed_loop import make_bundle_planners, run_closed_loop
 from renderworld.sim.closed_loop.trace import trace_rows, trace_scene, write_trace
 from tests.sim.test_closed_loop import _bundle, _world
@@ -24,6 +25,12 @@ def test_a_trace_replays_the_run_and_names_each_choice(tmp_path):
         assert r["kind"] == c.kind[c.best] and r["score"] == pytest.approx(c.score[c.best])
         assert r["plan_NC"] == c.NC[0] and r["plan_score"] == pytest.approx(c.score[0])
         assert r["accel_min"] <= r["accel_max"]
+        # An uncomfortable learned plan names the quantity it broke, and by how much.
+        if c.C[0] == 0:
+            name, times = r["plan_comfort"].split()
+            assert name in COMFORT_BOUNDS and float(times[:-1]) >= 1.0
+        else:
+            assert r["plan_comfort"] == ""
     assert rows[0]["speed"] == pytest.approx(episode.states[0, 3])
     path = write_trace(world, [raw, checked], tmp_path / "out")
     text = path.read_text()

@@ -4,7 +4,8 @@
 checked bundle planner recording its :class:`~renderworld.planning.PlanResult` s, and writes one
 row per plan (every 0.5 s): the ego's speed, the candidate chosen (kind, lateral offset, target
 speed or deceleration, score), the learned plan's own sub-scores (what it lost on when it was
-replaced) and the acceleration the car then drove until the next plan. The episode is the
+replaced; where it was uncomfortable, the comfort quantity that went furthest beyond its bound,
+as a multiple of it) and the acceleration the car then drove until the next plan. The episode is the
 run's own (the loop is deterministic), so the trace explains the scores in the tables.
 """
 
@@ -56,7 +57,9 @@ def trace_rows(episode: Episode, results: list) -> list[dict]:
     Returns:
         Dicts with ``t`` (s), ``speed`` (m/s, at the plan), ``kind``, ``offset_m``, ``target``
         (the chosen candidate's target speed m/s or deceleration m/s^2), ``score``,
-        ``plan_score`` and ``plan_<NC|DAC|EP|TTC|C>`` (the learned plan's), and ``accel_min``,
+        ``plan_score`` and ``plan_<NC|DAC|EP|TTC|C>`` (the learned plan's), ``plan_comfort``
+        (its worst comfort quantity and how far, a multiple of the bound; "" when comfortable
+        or not recorded), and ``accel_min``,
         ``accel_max`` (m/s^2 driven until the next plan; NaN past the episode's end).
     """
     times = np.asarray(episode.times, dtype=np.float64)
@@ -78,11 +81,20 @@ def trace_rows(episode: Episode, results: list) -> list[dict]:
             "score": float(c.score[b]),
             "plan_score": float(c.score[0]),
             **{f"plan_{n}": float(getattr(c, n)[0]) for n in SUBSCORES},
+            "plan_comfort": _worst_comfort(c),
             "accel_min": float(seg.min()) if len(seg) else float("nan"),
             "accel_max": float(seg.max()) if len(seg) else float("nan"),
         }
         rows.append(row)
     return rows
+
+
+def _worst_comfort(c) -> str:
+    """``"yaw_accel 1.8x"``: the learned plan's comfort quantity furthest beyond its bound."""
+    excess = getattr(c, "comfort_excess", None)
+    if excess is None or float(excess[0]) < 1.0:
+        return ""
+    return f"{c.comfort_worst[0]} {float(excess[0]):.1f}x"
 
 
 def trace_markdown(scene: str, planner: str, row: dict, rows: list[dict]) -> str:
@@ -103,12 +115,14 @@ def trace_markdown(scene: str, planner: str, row: dict, rows: list[dict]) -> str
                         for n in SUBSCORES)  # fmt: skip
         lines.append(
             f"| {r['t']:.1f} | {r['speed']:.2f} | {r['kind']} | {r['offset_m']:+.0f} | "
-            f"{r['target']:.2f} | {r['score']:.3f} | {r['plan_score']:.3f}; {plan} | "
+            f"{r['target']:.2f} | {r['score']:.3f} | {r['plan_score']:.3f}; {plan}"
+            f"{' (' + r['plan_comfort'] + ')' if r.get('plan_comfort') else ''} | "
             f"{r['accel_min']:+.1f} … {r['accel_max']:+.1f} |"
         )
     lines += ["", "target: the chosen candidate's target speed (m/s), or its deceleration (m/s², "
               "kind brake); the learned plan's sub-scores say what it lost on where another was "
-              "chosen."]  # fmt: skip
+              "chosen, and in brackets the comfort quantity it broke (a multiple of NAVSIM's "
+              "bound)."]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
