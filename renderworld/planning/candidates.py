@@ -106,6 +106,9 @@ class CheckConfig:
         continuous_start: every candidate starts with the ego's lateral acceleration now
             (:func:`renderworld.planning.checked.continue_lateral_accel`), so that the heading
             rate does not jump where one plan takes over from the last.
+        continuous_ease: ... and ends its first segment at the plan's own lateral
+            acceleration (the second waypoint moves too), so that a start off the plan's does
+            not swing to the other side by the next plan: no weave at two plans' period.
         continuous_min_speed: ... while the ego is faster than this, m/s (a standing car has
             no heading rate to go on with).
         path_spacing_m: the path keeps only plan points at least this far apart, metres: a slow
@@ -160,6 +163,7 @@ class CheckConfig:
     margin_counts_discomfort: bool = True
     cap_gap_s: float | None = None
     continuous_start: bool = True
+    continuous_ease: bool = False
     continuous_min_speed: float = 0.5
     path_spacing_m: float = 1.0
     steady_path: bool = True

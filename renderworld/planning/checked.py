@@ -131,23 +131,35 @@ def lateral_accel_now(history_poses: np.ndarray, speed_before: float, dt: float 
     return float((6.0 * y0 + 2.0 * dt * speed_before * np.sin(yaw0)) / dt**2)
 
 
-def continue_lateral_accel(waypoints: np.ndarray, accel: float, dt: float = KEYFRAME_DT):
+def continue_lateral_accel(
+    waypoints: np.ndarray, accel: float, dt: float = KEYFRAME_DT, ease: bool = False
+):
     """[N, S, 2] the waypoints with each first one moved sideways so that the tracked curve
     starts with lateral acceleration ``accel`` (m/s^2): the heading rate then goes on smoothly
     from the last plan's instead of jumping at the change of plan (a jump of ``w`` rad/s reads
     as about ``4.3 w`` rad/s^2 of yaw acceleration in NAVSIM's 5-state filter).
 
     The first segment of the tracked curve (:func:`renderworld.planning.tracking.reference_batch`)
-    starts along x with lateral acceleration ``(6 y1 - y2) / dt^2``; ``y1`` is set to give
-    ``accel``. Plans of one waypoint are returned unchanged.
+    starts along x with lateral acceleration ``(6 y1 - y2) / dt^2`` and ends with
+    ``(2 y2 - 6 y1) / dt^2``: the two add up to ``y2 / dt^2`` whatever ``y1`` is. Moving only
+    ``y1`` (``ease`` False) the segment ends at ``y2 / dt^2 - accel``, where the next plan starts:
+    a start off the plan's own by ``e`` ends off by ``-e``, and the car weaves at two plans' period
+    without damping. With ``ease`` the second waypoint moves as well, so that the segment goes
+    from ``accel`` to the plan's own lateral acceleration, its mean over the first two waypoints
+    (``2 y2 / (2 dt)^2``: a centimetre's jitter of the learned waypoints moves it little).
+    Plans of one waypoint are returned unchanged.
 
     Args:
         waypoints: [N, S, 2] metres at +dt ... +S dt, current ego frame.
         accel: m/s^2, left +.
         dt: seconds between waypoints.
+        ease: also move the second waypoint (above).
     """
     wp = np.array(waypoints, dtype=np.float64)
     if wp.shape[1] >= 2:
+        if ease:
+            own = wp[:, 1, 1] / (2.0 * dt**2)  # [N] its mean over the first two waypoints
+            wp[:, 1, 1] = (accel + own) * dt**2
         wp[:, 0, 1] = (dt**2 * accel + wp[:, 1, 1]) / 6.0
     return wp
 
@@ -259,7 +271,7 @@ def check_plan(
     if cfg.continuous_start and speed > cfg.continuous_min_speed:
         step = int(round(dt / 0.1))
         accel = lateral_accel_now(hist, float(past[-1 - step, 3]), dt) if len(past) > step else 0.0
-        cands.waypoints = continue_lateral_accel(cands.waypoints, accel, dt)
+        cands.waypoints = continue_lateral_accel(cands.waypoints, accel, dt, cfg.continuous_ease)
     t2 = time.perf_counter()
     scores = score_candidates(cands, scene, past, cfg, limits, dt, previous)
     t3 = time.perf_counter()

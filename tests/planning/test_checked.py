@@ -321,6 +321,39 @@ def test_the_heading_rate_goes_on_where_a_new_plan_takes_over():
     assert abs(rates["continued"] - rate_before) < 0.25 * abs(rates["raw"] - rate_before)
 
 
+@pytest.mark.parametrize("ease", [False, True])
+def test_re_planning_from_a_curve_onto_a_straight_plan_weaves_unless_eased(ease):
+    # The car leaves a left curve; every 0.5 s it re-plans the same straight plan, continued
+    # from its lateral acceleration now, and drives its first segment. Moving the first
+    # waypoint alone mirrors the start about the plan's own at the segment's end: the next plan
+    # starts off by as much the other way, and the car weaves at two plans' period. Eased, each
+    # segment ends at the plan's own (straight), so the weave dies.
+    from renderworld.planning.checked import continue_lateral_accel, lateral_accel_now
+    from renderworld.planning.kinematics import EgoState, KinematicLimits, track_plan
+
+    lim = KinematicLimits()
+    prev = EgoState(0.0, 0.0, 0.0, V)
+    driven, _ = track_plan(prev, _curve(prev, 40.0), lim, 5)
+    straight = np.stack([V * DT * np.arange(1, 7), np.zeros(6)], -1)
+    accels = []
+    for _ in range(6):
+        now = driven[-1]
+        c, s = np.cos(now.yaw), np.sin(now.yaw)
+        back = (prev.xy - now.xy) @ np.array([[c, -s], [s, c]])
+        accel = lateral_accel_now(np.array([[*back, prev.yaw - now.yaw], [0, 0, 0]]), V, DT)
+        accels.append(accel)
+        wp = continue_lateral_accel(straight[None], accel, DT, ease=ease)[0]
+        to_scene = now.xy + wp @ np.array([[c, s], [-s, c]])
+        prev, (driven, _) = now, track_plan(now, to_scene, lim, 5)
+    accels = np.array(accels)
+    assert abs(accels[0]) > 0.5  # m/s^2 on the curve
+    if ease:
+        assert np.abs(accels[1:]).max() < 0.1 * abs(accels[0])
+    else:  # the sign flips at every plan and the size does not decay
+        assert (np.sign(accels[1:]) == -np.sign(accels[:-1])).all()
+        assert np.abs(accels[-1]) > 0.8 * abs(accels[0])
+
+
 def test_a_slow_plan_wiggling_sideways_gives_a_straight_path():
     wiggle = np.array([[0.0, 0.0], [0.4, 0.05], [0.8, -0.05], [1.2, 0.05], [1.6, -0.05]])
     assert len(PlanPath(wiggle, 10.0).heading) == len(wiggle)  # every wiggle kept
