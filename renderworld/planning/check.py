@@ -142,7 +142,7 @@ def comfort_excess(
     n = states.shape[0]
     past = np.broadcast_to(past[None], (n, *past.shape))
     worst = np.zeros(n)
-    names = np.full(n, next(iter(COMFORT_BOUNDS)), dtype=object)
+    which = np.zeros(n, dtype=np.int64)  # index into COMFORT_BOUNDS of the worst quantity
     windows = [(a, COMFORT_WINDOW) for a in range(past.shape[1] - 1, -1, -stride)]
     windows += [(past.shape[1] - 1, int(round(s / SIM_DT)) + 1) for s in prefixes_s]
     for start, length in windows:
@@ -151,14 +151,17 @@ def comfort_excess(
             continue
         q = comfort_signals(window)
         k = past.shape[1] - 1 - start
-        for name, (lo, hi) in COMFORT_BOUNDS.items():
+        for j, (name, (lo, hi)) in enumerate(COMFORT_BOUNDS.items()):
             x = q[name][:, k:]
             ratio = np.maximum(np.where(x > 0, x / hi, x / lo), 0.0).max(1)
             outside = ~((x > lo) & (x < hi)).all(1)  # strictly inside, as NAVSIM judges
             value = np.where(outside, np.maximum(ratio, 1.0), ratio)
-            names = np.where(value > worst, name, names)
+            which = np.where(value > worst, j, which)
             worst = np.maximum(worst, value)
-    return (worst, list(names)) if worst_name else worst
+    if worst_name:
+        keys = list(COMFORT_BOUNDS)
+        return worst, [keys[j] for j in which]
+    return worst
 
 
 def comfort_ok(states: np.ndarray, past: np.ndarray, stride: int = COMFORT_STRIDE) -> np.ndarray:
