@@ -98,6 +98,10 @@ class CheckConfig:
             bumper comes within ``s0`` + this many seconds at its own speed of a leader at some
             waypoint; None: always (IDM brakes a little for any leader, however far). 0.0 gained
             on every development set and lost both closed-loop test splits (docs/planner.md).
+        cap_coolness: None (as ``acc_coolness``), or the ACC coolness of the IDM run that holds
+            the learned plan back only (the IDM candidates keep ``acc_coolness``): the plan
+            is not forced into IDM's emergency stop for a close car cutting in, while the plain
+            IDM runs stay beside it for a lead car the forecast shows braking late.
         margin_counts_discomfort: whether the learned plan's own discomfort cost counts
             when it is weighed against the best candidate with ``plan_margin``; False: only its
             score does (comfort weighs 2/12 there), so however far a plan overshoots a comfort
@@ -162,6 +166,7 @@ class CheckConfig:
     plan_margin: float = 0.2
     margin_counts_discomfort: bool = True
     cap_gap_s: float | None = None
+    cap_coolness: float | None = None
     continuous_start: bool = True
     continuous_ease: bool = False
     continuous_min_speed: float = 0.5
@@ -345,13 +350,15 @@ def make_candidates(
     wps, kinds, offs, spd = [], [], [], []
     leads = leaders(scene, path, cfg.offsets_m, cfg, steps * dt)
     soft = None if cfg.soft_min_accel is None else replace(cfg, idm_min_accel=cfg.soft_min_accel)
+    cap_cfg = cfg if cfg.cap_coolness is None else replace(cfg, acc_coolness=cfg.cap_coolness)
     for d, lead in zip(cfg.offsets_m, leads):
         # The plan, no farther than IDM at the plan's top speed would go behind the leaders
         # (its headway is the margin the forecast needs: the exact plan beside it, and the plan
         # held back only near a leader, collided more on the test splits; docs/planner.md).
         s_cap = s_plan
         if cfg.cap_gap_s is None or too_close(s_plan, step_speed, lead, cfg, dt):
-            s_cap = np.minimum(s_plan, idm_arc(speed, [max(top, speed)], lead, cfg, steps, dt)[0])
+            held = idm_arc(speed, [max(top, speed)], lead, cap_cfg, steps, dt)[0]
+            s_cap = np.minimum(s_plan, held)
         if np.allclose(s_cap, s_plan, rtol=0, atol=1e-9):
             s_cap = s_plan
         # The learned waypoints themselves, exactly, where nothing changed them.

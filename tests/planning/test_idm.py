@@ -4,6 +4,8 @@ Hand-made scenes on the demo's coarse grid (the ego along +x at 10 m/s; the fore
 at constant velocity), as in ``test_checked``.
 """
 
+from dataclasses import replace
+
 import numpy as np
 
 from renderworld.planning.candidates import CheckConfig, PlanPath, leaders
@@ -137,3 +139,22 @@ def test_idm_plus_does_not_brake_at_its_speed_behind_a_car_pulling_away():
             hardest[v_lead, plus] = decel.max()
     assert hardest[13.0, False] > 0.3 and abs(hardest[13.0, True]) < 1e-6, hardest
     assert hardest[7.0, False] > 1.0 and hardest[7.0, True] > 1.0, hardest
+
+
+def test_cap_coolness_softens_the_plans_hold_back_only():
+    # The car at 8 m/s cutting in 8 m ahead (above): the learned plan held back by plain IDM
+    # brakes beyond NAVSIM's comfort bound in its first half second; held back by the ACC model
+    # it brakes within it, and the IDM candidates beside it are the same either way.
+    car = (CAR, lambda t: (FRONT + 8.0 + 8.0 * t, -0.8), (3, 2))
+    occ, poses = history([car])
+    plan = straight_plan()
+    cfg = CheckConfig(steady_path=False, continuous_start=False)
+    plain = check_plan(occ, poses, plan, GRID, cfg).candidates
+    cool = check_plan(occ, poses, plan, GRID, replace(cfg, cap_coolness=0.99)).candidates
+
+    def first_decel(wp):  # m/s^2, constant over the first 0.5 s, from the first waypoint
+        return 2.0 * (V * 0.5 - wp[0, 0]) / 0.5**2
+
+    assert first_decel(plain.waypoints[0]) > 6.0 and first_decel(cool.waypoints[0]) < 4.05
+    idm = [i for i, k in enumerate(plain.kind) if k == "idm"]
+    np.testing.assert_array_equal(plain.waypoints[idm], cool.waypoints[idm])
