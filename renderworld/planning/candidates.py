@@ -119,6 +119,9 @@ class CheckConfig:
             plan's centimetre wiggles would otherwise turn the car back and forth.
         steady_path: also propose the IDM runs and brakes along the ego's steady path (its
             heading and turn rate now), for when the learned path turns where the car cannot.
+        steady_for_comfort: False: the steady path's candidates are not driven while the
+            learned plan's own is safe (no forecast contact, on the road, TTC kept): comfort or
+            progress alone does not take the car off the learned path (off a turning route).
         comfort_prefixes_s: comfort is also judged on the window that starts now cut after
             each of these many seconds, which reads the jerk of a short brake
             (:func:`renderworld.planning.check.comfort_excess`); off: the test splits lost
@@ -172,6 +175,7 @@ class CheckConfig:
     continuous_min_speed: float = 0.5
     path_spacing_m: float = 1.0
     steady_path: bool = True
+    steady_for_comfort: bool = True
     comfort_prefixes_s: tuple[float, ...] = ()
     progress_along_plan: bool = False
     spline_tracking: bool = False

@@ -280,6 +280,9 @@ def score_candidates(
             change = np.hypot(*(wp - np.asarray(previous, dtype=np.float64)[None]).T).mean(0)
             cost = cost + cfg.change_cost * change
         choice = score - cost
+        if not cfg.steady_for_comfort and nc[0] * dac[0] * ttc[0] > 0:  # the plan's path is safe
+            steady = np.array([k.startswith("steady") for k in cands.kind])
+            choice = np.where(steady, -np.inf, choice)
         best = int(np.argmax(choice))
         plan = choice[0] if cfg.margin_counts_discomfort else score[0] - (cost[0] - discomfort[0])
         if score[0] > 0 and plan >= choice[best] - cfg.plan_margin:

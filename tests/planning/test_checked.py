@@ -513,3 +513,17 @@ def test_soft_idm_runs_brake_no_harder_than_their_clip():
     straight = [i for i in soft + hard if c.offset_m[i] == 0.0]  # no sideways ramp in the speeds
     assert max(decel(i) for i in hard if i in straight) > 5.0  # IDM brakes hard behind the car
     assert max(decel(i) for i in soft if i in straight) < 4.0 + 1e-6  # its soft twin at most 4
+
+
+def test_without_steady_for_comfort_a_safe_plan_is_not_left_for_the_steady_path():
+    # A learned plan that swerves left at once on a free road: safe, but its lateral start
+    # breaks comfort, so a comfortable steady-path run (straight on) replaces it by default;
+    # with steady_for_comfort off no steady-path candidate is driven while the plan is safe.
+    occ, poses = history()
+    t = np.arange(1, 7) * DT
+    plan = np.stack([V * t, 3.0 * np.minimum(t, 1.0) ** 2, np.zeros(6)], 1)
+    base = check_plan(occ, poses, plan, GRID).candidates
+    off = check_plan(occ, poses, plan, GRID, CheckConfig(steady_for_comfort=False)).candidates
+    assert base.NC[0] * base.DAC[0] * base.TTC[0] == 1 and base.C[0] == 0
+    assert base.kind[base.best].startswith("steady")
+    assert not off.kind[off.best].startswith("steady")
