@@ -45,11 +45,16 @@ def test_scenes_are_paired_and_counted_per_behaviour(runs):
     assert o["PDMS_a"] == pytest.approx((0.8 + 0.0 + 0.9) / 3)
     assert o["PDMS_b"] == pytest.approx((0.8 + 0.7 + 0.6) / 3)
     assert (o["up"], o["down"]) == (1, 1)  # s2 up, s3 down, s1 the same
+    # The standard error of the paired differences (0, +0.7, -0.3) over 3 scenes.
+    assert o["PDMS_se"] == pytest.approx(pd.Series([0.0, 0.7, -0.3]).std() / 3**0.5)
+    assert cmp["behaviours"]["lead_brake"]["PDMS_se"] != cmp["behaviours"]["lead_brake"]["PDMS_se"]
     assert (o["at_fault_collision_a"], o["at_fault_collision_b"]) == (1, 0)
     assert cmp["behaviours"]["cut_in"]["n"] == 2 and cmp["behaviours"]["lead_brake"]["n"] == 1
     assert [m[0] for m in cmp["moved"]] == ["s2", "s3"]  # largest change first, unchanged left out
     md = comparison_markdown(cmp)
     assert "| all | 3 |" in md and "s2 (cut_in): 0.000 → 0.700" in md and "s4" in md
+    assert f"| +0.133 ± {o['PDMS_se']:.3f} |" in md
+    assert "| -0.300 | 0 / 1 |" in md  # lead_brake, one scene: no standard error
 
 
 def test_the_tool_prints_and_writes_the_tables_and_compares_two_planners(runs, tmp_path, capsys):

@@ -3,8 +3,10 @@
 Two runs of the same scenes (a knob on and off, two bundles, two planners) differ scene by
 scene; one collision moves the mean PDMS of 16 scenes by about 0.05. The comparison pairs the
 rows by scene and reads each run's planner row (by default the same planner in both), so that
-the mean difference comes with how many scenes went up and down, per behaviour, and the scenes
-that moved most. ``tools/compare_drives.py`` prints it.
+the mean difference comes with its standard error over the scenes (the spread of the paired
+differences: a knob whose difference is within about two of them has not shown anything), how
+many scenes went up and down, per behaviour, and the scenes that moved most.
+``tools/compare_drives.py`` prints it.
 """
 
 from __future__ import annotations
@@ -59,7 +61,8 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, top: int = 5) -> dict:
         ``{"scenes": n, "only_a": [...], "only_b": [...], "overall": {...}, "behaviours":
         {behaviour: {...}}, "moved": [(scene, behaviour, PDMS a, PDMS b), ...]}``; each
         summary holds ``n``, the means ``<key>_a`` / ``<key>_b`` of every score of
-        :data:`PAIR_KEYS`, ``up`` / ``down`` (scenes whose PDMS rose or fell by more than
+        :data:`PAIR_KEYS`, ``PDMS_se`` (the standard error of the mean paired PDMS difference;
+        NaN for one scene), ``up`` / ``down`` (scenes whose PDMS rose or fell by more than
         1e-6) and the scenes with an at-fault collision and off the road in each run.
 
     Raises:
@@ -79,6 +82,7 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, top: int = 5) -> dict:
             out[f"{k}_a"] = float(pa.loc[idx, k].mean())
             out[f"{k}_b"] = float(pb.loc[idx, k].mean())
         d = pb.loc[idx, "PDMS"] - pa.loc[idx, "PDMS"]
+        out["PDMS_se"] = float(d.std(ddof=1) / len(d) ** 0.5) if len(d) > 1 else float("nan")
         out["up"], out["down"] = int((d > 1e-6).sum()), int((d < -1e-6).sum())
         for k in _EVENTS:
             out[f"{k}_a"] = int(pa.loc[idx, k].astype(bool).sum())
@@ -104,10 +108,14 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, top: int = 5) -> dict:
     }
 
 
+def _se(se: float) -> str:
+    return "" if se != se else f" ± {se:.3f}"  # NaN (one scene): none
+
+
 def comparison_markdown(cmp: dict, label_a: str = "a", label_b: str = "b") -> str:
     """Tables of :func:`compare_runs`: overall and per behaviour, then the scenes that moved."""
     head = (
-        f"| scenes | n | PDMS {label_a} | PDMS {label_b} | b − a | up / down | EP a → b | "
+        f"| scenes | n | PDMS {label_a} | PDMS {label_b} | b − a ± s.e. | up / down | EP a → b | "
         "TTC a → b | C a → b | at fault a → b | off road a → b |\n"
         "|---|---|---|---|---|---|---|---|---|---|---|"
     )
@@ -115,7 +123,7 @@ def comparison_markdown(cmp: dict, label_a: str = "a", label_b: str = "b") -> st
     def row(name, s):
         return (
             f"| {name} | {s['n']} | {s['PDMS_a']:.3f} | {s['PDMS_b']:.3f} | "
-            f"{s['PDMS_b'] - s['PDMS_a']:+.3f} | {s['up']} / {s['down']} | "
+            f"{s['PDMS_b'] - s['PDMS_a']:+.3f}{_se(s['PDMS_se'])} | {s['up']} / {s['down']} | "
             f"{s['EP_a']:.3f} → {s['EP_b']:.3f} | {s['TTC_a']:.3f} → {s['TTC_b']:.3f} | "
             f"{s['C_a']:.3f} → {s['C_b']:.3f} | "
             f"{s['at_fault_collision_a']} → {s['at_fault_collision_b']} | "
