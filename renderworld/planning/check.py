@@ -48,7 +48,7 @@ from renderworld.planning.comfort import (
     COMFORT_BOUNDS,
     COMFORT_STRIDE,
     COMFORT_WINDOW,
-    comfort_signals,
+    comfort_signals_fast,
 )
 from renderworld.planning.kinematics import SIM_DT, KinematicLimits
 from renderworld.planning.scene import ForecastScene
@@ -149,7 +149,7 @@ def comfort_excess(
         window = np.concatenate([past[:, start:], states], axis=1)[:, :length]
         if window.shape[1] < 5:
             continue
-        q = comfort_signals(window)
+        q = comfort_signals_fast(window)
         k = past.shape[1] - 1 - start
         for j, (name, (lo, hi)) in enumerate(COMFORT_BOUNDS.items()):
             x = q[name][:, k:]
