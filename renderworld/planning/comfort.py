@@ -101,30 +101,11 @@ def comfort_signals(states: np.ndarray, dt: float = SIM_DT) -> dict[str, np.ndar
         ValueError: naming ``states`` when it is not [..., n >= 5, 4], or ``dt`` when not
             positive.
     """
-    states = np.asarray(states, dtype=np.float64)
-    if states.ndim < 2 or states.shape[-2] < _MIN_STATES or states.shape[-1] != 4:
-        raise ValueError(
-            f"states: expected shape [..., n >= {_MIN_STATES}, 4], got {list(states.shape)}"
-        )
-    if not dt > 0:
-        raise ValueError(f"dt: expected a positive step in seconds, got {dt}")
-    n = states.shape[-2]
-    v, yaw = states[..., 3], np.unwrap(states[..., 2], axis=-1)
-    lon = np.gradient(v, dt, axis=-1)
-    lat = v * np.gradient(yaw, dt, axis=-1)
 
-    def sg(x, window, order, deriv=0):
+    def sg(x, n, window, order, deriv=0):
         return savgol_filter(x, min(window, n), order, deriv=deriv, delta=dt, axis=-1)
 
-    out = {
-        "lon_accel": sg(lon, n, 2),
-        "lat_accel": sg(lat, n, 2),
-        "jerk": sg(sg(np.hypot(lon, lat), 8, 2), n, 2, 1),
-        "lon_jerk": sg(sg(lon, 8, 2), n, 2, 1),
-        "yaw_rate": sg(yaw, 5, 2, 1),
-        "yaw_accel": sg(yaw, 5, 3, 2),
-    }
-    return {k: np.round(q, 8) for k, q in out.items()}
+    return _signals(states, dt, sg)
 
 
 @lru_cache(maxsize=128)
@@ -144,6 +125,16 @@ def comfort_signals_fast(states: np.ndarray, dt: float = SIM_DT) -> dict[str, np
 
     Args / Returns / Raises: as :func:`comfort_signals`.
     """
+
+    def sg(x, n, window, order, deriv=0):
+        return x @ _savgol_matrix(n, window, order, deriv, float(dt)).T
+
+    return _signals(states, dt, sg)
+
+
+def _signals(states, dt, sg) -> dict[str, np.ndarray]:
+    """The quantities of :func:`comfort_signals` with ``sg(x, n, window, order, deriv)`` as the
+    Savitzky-Golay filter along the last axis."""
     states = np.asarray(states, dtype=np.float64)
     if states.ndim < 2 or states.shape[-2] < _MIN_STATES or states.shape[-1] != 4:
         raise ValueError(
@@ -155,17 +146,13 @@ def comfort_signals_fast(states: np.ndarray, dt: float = SIM_DT) -> dict[str, np
     v, yaw = states[..., 3], np.unwrap(states[..., 2], axis=-1)
     lon = np.gradient(v, dt, axis=-1)
     lat = v * np.gradient(yaw, dt, axis=-1)
-
-    def sg(x, window, order, deriv=0):
-        return x @ _savgol_matrix(n, window, order, deriv, float(dt)).T
-
     out = {
-        "lon_accel": sg(lon, n, 2),
-        "lat_accel": sg(lat, n, 2),
-        "jerk": sg(sg(np.hypot(lon, lat), 8, 2), n, 2, 1),
-        "lon_jerk": sg(sg(lon, 8, 2), n, 2, 1),
-        "yaw_rate": sg(yaw, 5, 2, 1),
-        "yaw_accel": sg(yaw, 5, 3, 2),
+        "lon_accel": sg(lon, n, n, 2),
+        "lat_accel": sg(lat, n, n, 2),
+        "jerk": sg(sg(np.hypot(lon, lat), n, 8, 2), n, n, 2, 1),
+        "lon_jerk": sg(sg(lon, n, 8, 2), n, n, 2, 1),
+        "yaw_rate": sg(yaw, n, 5, 2, 1),
+        "yaw_accel": sg(yaw, n, 5, 3, 2),
     }
     return {k: np.round(q, 8) for k, q in out.items()}
 
