@@ -121,7 +121,7 @@ def comfort_signals_fast(states: np.ndarray, dt: float = SIM_DT) -> dict[str, np
     """:func:`comfort_signals` (its reference twin and the tests' oracle) with each
     Savitzky-Golay filter as one cached matrix product: the forecast-checked planner judges
     dozens of candidates in several windows per plan. Equal to it up to float round-off
-    (about 1e-13) before both round to 1e-8.
+    (below 1e-14 of the signal's size, measured) before both round to 1e-8.
 
     Args / Returns / Raises: as :func:`comfort_signals`.
     """

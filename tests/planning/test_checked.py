@@ -297,8 +297,18 @@ def _curve(state, radius, steps=6):
     return state.xy + local @ np.array([[c, s], [-s, c]])
 
 
+def _accel_now(before, now):
+    """The lateral acceleration now (m/s^2) from the ego states half a second apart, as the
+    planner reads it from its last two history poses (:func:`lateral_accel_now`)."""
+    from renderworld.planning.checked import lateral_accel_now
+
+    c, s = np.cos(now.yaw), np.sin(now.yaw)
+    back = (before.xy - now.xy) @ np.array([[c, -s], [s, c]])
+    return lateral_accel_now(np.array([[*back, before.yaw - now.yaw], [0.0, 0.0, 0.0]]), V, DT)
+
+
 def test_the_heading_rate_goes_on_where_a_new_plan_takes_over():
-    from renderworld.planning.checked import continue_lateral_accel, lateral_accel_now
+    from renderworld.planning.checked import continue_lateral_accel
     from renderworld.planning.kinematics import EgoState, KinematicLimits, track_plan
 
     lim = KinematicLimits()
@@ -306,10 +316,7 @@ def test_the_heading_rate_goes_on_where_a_new_plan_takes_over():
     driven, _ = track_plan(start, _curve(start, 40.0), lim, 5)  # half a second on a left curve
     now = driven[-1]
     rate_before = (driven[-1].yaw - driven[-2].yaw) / 0.1
-    c, s = np.cos(now.yaw), np.sin(now.yaw)
-    to_now = lambda xy: (xy - now.xy) @ np.array([[c, -s], [s, c]])  # noqa: E731
-    hist = np.array([[*to_now(start.xy), -now.yaw], [0.0, 0.0, 0.0]])
-    accel = lateral_accel_now(hist, V, DT)
+    accel = _accel_now(start, now)
     assert accel == pytest.approx(V * rate_before, rel=0.05)  # v x yaw rate of the last step
     straight = np.stack([V * DT * np.arange(1, 7), np.zeros(6)], -1)  # the new plan: straight
     rates = {}
@@ -328,7 +335,7 @@ def test_re_planning_from_a_curve_onto_a_straight_plan_weaves_unless_eased(ease)
     # waypoint alone mirrors the start about the plan's own at the segment's end: the next plan
     # starts off by as much the other way, and the car weaves at two plans' period. Eased, each
     # segment ends at the plan's own (straight), so the weave dies.
-    from renderworld.planning.checked import continue_lateral_accel, lateral_accel_now
+    from renderworld.planning.checked import continue_lateral_accel
     from renderworld.planning.kinematics import EgoState, KinematicLimits, track_plan
 
     lim = KinematicLimits()
@@ -338,11 +345,10 @@ def test_re_planning_from_a_curve_onto_a_straight_plan_weaves_unless_eased(ease)
     accels = []
     for _ in range(6):
         now = driven[-1]
-        c, s = np.cos(now.yaw), np.sin(now.yaw)
-        back = (prev.xy - now.xy) @ np.array([[c, -s], [s, c]])
-        accel = lateral_accel_now(np.array([[*back, prev.yaw - now.yaw], [0, 0, 0]]), V, DT)
+        accel = _accel_now(prev, now)
         accels.append(accel)
         wp = continue_lateral_accel(straight[None], accel, DT, ease=ease)[0]
+        c, s = np.cos(now.yaw), np.sin(now.yaw)
         to_scene = now.xy + wp @ np.array([[c, s], [-s, c]])
         prev, (driven, _) = now, track_plan(now, to_scene, lim, 5)
     accels = np.array(accels)

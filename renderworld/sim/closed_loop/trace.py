@@ -91,10 +91,9 @@ def trace_rows(episode: Episode, results: list) -> list[dict]:
 
 def _worst_comfort(c) -> str:
     """``"yaw_accel 1.8x"``: the learned plan's comfort quantity furthest beyond its bound."""
-    excess = getattr(c, "comfort_excess", None)
-    if excess is None or float(excess[0]) < 1.0:
+    if c.comfort_excess is None or float(c.comfort_excess[0]) < 1.0:
         return ""
-    return f"{c.comfort_worst[0]} {float(excess[0]):.1f}x"
+    return f"{c.comfort_worst[0]} {float(c.comfort_excess[0]):.1f}x"
 
 
 def trace_markdown(scene: str, planner: str, row: dict, rows: list[dict]) -> str:
