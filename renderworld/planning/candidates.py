@@ -18,7 +18,9 @@ of the path) there are:
   component, never backwards (:func:`renderworld.planning.idm.leaders`). A pedestrian who will
   have crossed is not waited for; one who will be in the lane is, and so is a car foreseen to
   cut in within :attr:`CheckConfig.anticipate_s`, from now on;
-* ``brake``: a constant deceleration to a stop along the path.
+* ``brake``: a constant deceleration to a stop along the path;
+* ``pass`` (:attr:`CheckConfig.pass_parked`): IDM runs past a parked road user in the corridor
+  (:mod:`renderworld.planning.passing`).
 
 Frames: the current ego frame (x forward, y left; metres, seconds, m/s); the ego starts at the
 origin, heading 0, at its current speed.
@@ -32,14 +34,14 @@ import numpy as np
 
 from renderworld.constants import KEYFRAME_DT
 from renderworld.planning.idm import Leaders, idm_arc, leaders, too_close
+from renderworld.planning.passing import pass_candidates
+from renderworld.planning.path import PlanPath
 from renderworld.planning.scene import ForecastScene
 
 __all__ = [
     "CheckConfig", "Candidates", "Leaders", "PlanPath", "check_config", "leaders",
     "make_candidates",
 ]  # fmt: skip
-
-_MAX_TURN = np.radians(60.0)  # a path point turning more than this folds the path
 
 
 @dataclass(frozen=True)
@@ -136,6 +138,13 @@ class CheckConfig:
             simulator's Catmull-Rom curve, whose heading rate jumps at every waypoint: the car
             re-plans every 0.5 s and never drives a plan's later waypoints. Off: the turns
             gained, the interaction scenes lost (docs/planner.md).
+        pass_parked: also propose passing a parked road user in the plan's corridor
+            (:mod:`renderworld.planning.passing`): the path shifted to clear it by
+            ``pass_clearance_m`` (metres beyond the ego's side, from its cell centres; at most
+            ``pass_max_offset_m``), reached over ``pass_ramp_s`` seconds at the ego's speed; for
+            one standing ``pass_parked_s`` seconds of the history, within ``pass_range_s``.
+            On: the four closed-loop development sets' mean 0.838 -> 0.846, no contact at fault
+            (a 3 s ramp or a 1.5 m clearance lost; docs/planner.md).
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -179,6 +188,12 @@ class CheckConfig:
     comfort_prefixes_s: tuple[float, ...] = ()
     progress_along_plan: bool = False
     spline_tracking: bool = False
+    pass_parked: bool = True
+    pass_clearance_m: float = 1.0
+    pass_max_offset_m: float = 4.5
+    pass_ramp_s: float = 2.2
+    pass_parked_s: float = 1.0
+    pass_range_s: float = 5.0
 
 
 def check_config(overrides, name: str = "check") -> CheckConfig:
@@ -202,85 +217,13 @@ def check_config(overrides, name: str = "check") -> CheckConfig:
                                      for k, v in overrides.items()})  # fmt: skip
 
 
-class PlanPath:
-    """A polyline path parametrised by arc length (metres), current ego frame.
-
-    Points that would fold the path back (a turn of more than :data:`_MAX_TURN` from the
-    previous segment's direction, the first segment's measured from ``start``) are dropped:
-    the path goes forward, as a car does; :attr:`folded` says whether any was. So are points
-    within ``spacing_m`` of the last point kept (:attr:`thinned`).
-
-    Args:
-        points: [K, 2] metres, starting at the ego (duplicates dropped).
-        extend_m: straight extension beyond the last point, along the last segment (or
-            ``heading`` when the points do not move).
-        heading: direction (radians) when the path has no length.
-        start: direction (radians) of the car at the first point.
-        spacing_m: the least distance between consecutive points kept, metres.
-    """
-
-    def __init__(self, points: np.ndarray, extend_m: float, heading: float = 0.0,
-                 start: float = 0.0, spacing_m: float = 1e-3):  # fmt: skip
-        pts = np.asarray(points, dtype=np.float64)
-        keep = [0]
-        direction = np.array([np.cos(start), np.sin(start)])
-        self.folded = self.thinned = False
-        for i in range(1, len(pts)):
-            d = pts[i] - pts[keep[-1]]
-            n = float(np.hypot(*d))
-            if n <= max(spacing_m, 1e-3):
-                self.thinned = self.thinned or n > 1e-3
-                continue
-            if d @ direction < np.cos(_MAX_TURN) * n:
-                self.folded = True
-                continue
-            keep.append(i)
-            direction = d / n
-        pts = pts[keep]
-        if len(pts) >= 2:
-            d = pts[-1] - pts[-2]
-            heading = float(np.arctan2(d[1], d[0]))
-        end = pts[-1] + extend_m * np.array([np.cos(heading), np.sin(heading)])
-        self.xy = np.concatenate([pts, end[None]])
-        seg = np.hypot(*np.diff(self.xy, axis=0).T)
-        self.s = np.r_[0.0, np.cumsum(seg)]
-        self.heading = np.arctan2(*np.diff(self.xy, axis=0)[:, ::-1].T)
-        self.length = float(self.s[-1])
-
-    def project(self, xy: np.ndarray) -> np.ndarray:
-        """[K] arc lengths (metres) of the path points nearest to positions [K, 2]."""
-        a, d = self.xy[:-1], np.diff(self.xy, axis=0)  # segments [G, 2]
-        rel = np.asarray(xy, dtype=np.float64)[:, None] - a[None]  # [K, G, 2]
-        u = np.clip((rel * d).sum(-1) / np.maximum((d * d).sum(-1), 1e-12), 0.0, 1.0)
-        dist = np.hypot(*(rel - u[..., None] * d).transpose(2, 0, 1))
-        g = dist.argmin(1)
-        return self.s[g] + u[np.arange(len(g)), g] * np.diff(self.s)[g]
-
-    def at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(positions [..., 2], headings [...]) at arc lengths ``s`` (clipped to the path)."""
-        s = np.clip(np.asarray(s, dtype=np.float64), 0.0, self.length)
-        k = np.clip(np.searchsorted(self.s, s, side="right") - 1, 0, len(self.heading) - 1)
-        u = (s - self.s[k])[..., None]
-        h = self.heading[k]
-        return self.xy[k] + u * np.stack([np.cos(h), np.sin(h)], -1), h
-
-    def offset(self, s: np.ndarray, d: float, ramp_m: float, quintic: bool = False) -> np.ndarray:
-        """Positions [..., 2] at ``s`` shifted ``d`` metres to the left, reached smoothly over
-        the first ``ramp_m`` metres: a cubic smoothstep, or (``quintic``) a quintic one, whose
-        curvature starts and ends at 0 (the wheel is turned, not jumped)."""
-        xy, h = self.at(s)
-        u = np.clip(np.asarray(s) / max(ramp_m, 1e-6), 0.0, 1.0)
-        w = d * (u * u * u * (10.0 + u * (6.0 * u - 15.0)) if quintic else u * u * (3 - 2 * u))
-        return xy + w[..., None] * np.stack([-np.sin(h), np.cos(h)], -1)
-
-
 @dataclass
 class Candidates:
     """Candidate plans.
 
     Attributes:
         waypoints: [N, S, 2] metres at +dt ... +S dt.
-        kind: N names (``plan``, ``idm``, ``brake``).
+        kind: N names (``plan``, ``idm``, ``brake``, ``pass``).
         offset_m: [N] lateral offset, metres.
         speed: [N] the IDM target speed (m/s), the plan's top speed (``plan``) or the
             deceleration (m/s^2, ``brake``).
@@ -333,7 +276,8 @@ def make_candidates(
     Returns:
         :class:`Candidates`, offsets in ``cfg.offsets_m`` order, each offset's ``plan`` first,
         then the IDM runs (fastest first; with ``soft_min_accel`` then those with the softer
-        clip), then the brakes (gentlest first).
+        clip), then the brakes (gentlest first); after every offset's, the ``pass`` runs
+        (``CheckConfig.pass_parked``).
     """
     plan = np.asarray(plan, dtype=np.float64)
     steps = plan.shape[0]
@@ -393,5 +337,11 @@ def make_candidates(
             kinds += ["brake"] * len(cfg.brake_decels)
             offs += [d] * len(cfg.brake_decels)
             spd += list(cfg.brake_decels)
+    pass_wps, pass_offs, pass_spd = pass_candidates(path, speed, max(aim, cruise), scene, cfg, steps, dt)
+    if len(pass_offs):
+        wps.append(pass_wps)
+        kinds += ["pass"] * len(pass_offs)
+        offs += list(pass_offs)
+        spd += list(pass_spd)
     reference = None if stalled else float(step_speed.sum() * dt)
     return Candidates(np.concatenate(wps), kinds, np.array(offs), np.array(spd), reference, path)

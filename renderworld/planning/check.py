@@ -30,7 +30,10 @@ The best candidate has the highest score less ``offset_cost`` per metre of later
 ``change_cost`` per metre of mean distance from the previous plan (an offset or a change has to
 buy safety or progress: no weaving or dithering between equal candidates), the earlier one in
 candidate order on ties (the learned plan itself comes first); the learned plan also wins while
-it scores above 0 and trails the best by at most ``plan_margin``. When every score is 0 the
+it scores above 0 and trails the best by at most ``plan_margin``. A ``pass`` candidate (past a
+parked road user, :mod:`renderworld.planning.passing`) pays no offset cost and wins over the
+learned plan whenever it is the better: waiting behind a car that will not move is no
+progress. When every score is 0 the
 candidate that stays on the drivable area and meets an obstacle latest (never, best) is chosen,
 then the one with the least lateral offset, then the one driving least: the hardest brake in
 its lane (a swerve into the next lane makes a contact the ego's fault).
@@ -273,7 +276,8 @@ def score_candidates(
     c = (excess < 1.0).astype(float)
     score = nc * dac * (5 * ep + 5 * ttc + 2 * c) / 12
     if score.max() > 0:  # a lateral offset or a change of plan must buy more than it costs
-        cost = cfg.offset_cost * np.abs(cands.offset_m)
+        passing = np.array([k == "pass" for k in cands.kind], dtype=bool)
+        cost = np.where(passing, 0.0, cfg.offset_cost * np.abs(cands.offset_m))
         discomfort = cfg.discomfort_cost * np.maximum(excess - 1.0, 0.0)
         cost = cost + discomfort
         if previous is not None and cfg.change_cost:
@@ -287,6 +291,8 @@ def score_candidates(
         plan = choice[0] if cfg.margin_counts_discomfort else score[0] - (cost[0] - discomfort[0])
         if score[0] > 0 and plan >= choice[best] - cfg.plan_margin:
             best = 0  # the learned plan, unless another candidate is clearly better
+            if passing.any() and choice[passing].max() > plan:  # or a pass is at all better
+                best = int(np.flatnonzero(passing)[np.argmax(choice[passing])])
     else:  # every candidate collides or leaves the road: on the road, latest contact, in its
         # lane, then the hardest brake (a swerve into the next lane is a contact at fault)
         choice = score

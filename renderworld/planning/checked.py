@@ -197,7 +197,8 @@ def _with_steady_path(cands, plan, past, speed, scene, cfg, dt, cruise_speed):
     """``cands`` and, after them, the IDM runs and brakes along :func:`steady_path_plan`."""
     steady = steady_path_plan(plan, past, dt)
     extra = make_candidates(steady[:, :2], steady[:, 2], speed, scene,
-                            replace(cfg, offsets_m=(0.0,)), dt, cruise_speed)  # fmt: skip
+                            replace(cfg, offsets_m=(0.0,), pass_parked=False), dt,
+                            cruise_speed)  # fmt: skip
     keep = np.array([k != "plan" for k in extra.kind])
     return Candidates(
         np.concatenate([cands.waypoints, extra.waypoints[keep]]),

@@ -90,13 +90,14 @@ def leaders(
     ``horizon`` seconds, the forecast obstacle points (movers where the forecast puts them then,
     static scenery) inside the corridor, the ego box widened by ``cfg.corridor_margin_m`` on each
     side around the shifted path (points are projected onto the unshifted path; the shift at
-    their arc length decides whether they lie in the shifted corridor). With
+    their arc length, the ramp of ``cfg.ramp_m`` and ``cfg.quintic_ramp``, decides whether they
+    lie in the shifted corridor). With
     ``cfg.anticipate_s`` > 0 a point leads from that many seconds before it enters
     (:class:`Leaders`).
 
     Args:
         scene: the forecast scene.
-        path: the :class:`renderworld.planning.candidates.PlanPath` (current ego frame).
+        path: the :class:`renderworld.planning.path.PlanPath` (current ego frame).
         offsets: lateral offsets of the path, metres (left +).
         cfg: the :class:`renderworld.planning.candidates.CheckConfig` (corridor, ramp).
         horizon: seconds.
@@ -140,7 +141,7 @@ def leaders(
     lat = np.concatenate([np.broadcast_to(lat_s, (n, len(lat_s))), lat_m], 1)
     along = np.concatenate([np.zeros((n, len(arc_s))), v_m], 1)
     u = np.clip(arc / max(cfg.ramp_m, 1e-6), 0.0, 1.0)
-    ramp = u * u * (3 - 2 * u)
+    ramp = u * u * u * (10.0 + u * (6.0 * u - 15.0)) if cfg.quintic_ramp else u * u * (3 - 2 * u)
     out = []
     for d in offsets:
         inside = (np.abs(lat - d * ramp) <= half) & (arc >= 0.0)
