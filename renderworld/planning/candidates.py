@@ -143,8 +143,8 @@ class CheckConfig:
             ``pass_clearance_m`` (metres beyond the ego's side, from its cell centres; at most
             ``pass_max_offset_m``), reached over ``pass_ramp_s`` seconds at the ego's speed; for
             one standing ``pass_parked_s`` seconds of the history, within ``pass_range_s``.
-            On: the four closed-loop development sets' mean 0.838 -> 0.846, no contact at fault
-            (a 3 s ramp or a 1.5 m clearance lost; docs/planner.md).
+            Off: it gained the closed-loop development sets (mean 0.838 -> 0.846) and not the
+            test splits (interaction split 0.790 -> 0.790, 72 scenes 0.805 -> 0.799).
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -188,7 +188,7 @@ class CheckConfig:
     comfort_prefixes_s: tuple[float, ...] = ()
     progress_along_plan: bool = False
     spline_tracking: bool = False
-    pass_parked: bool = True
+    pass_parked: bool = False
     pass_clearance_m: float = 1.0
     pass_max_offset_m: float = 4.5
     pass_ramp_s: float = 2.2
