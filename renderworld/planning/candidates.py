@@ -337,7 +337,9 @@ def make_candidates(
             kinds += ["brake"] * len(cfg.brake_decels)
             offs += [d] * len(cfg.brake_decels)
             spd += list(cfg.brake_decels)
-    pass_wps, pass_offs, pass_spd = pass_candidates(path, speed, max(aim, cruise), scene, cfg, steps, dt)
+    pass_wps, pass_offs, pass_spd = pass_candidates(
+        path, speed, max(aim, cruise), scene, cfg, steps, dt
+    )
     if len(pass_offs):
         wps.append(pass_wps)
         kinds += ["pass"] * len(pass_offs)
