@@ -109,10 +109,10 @@ def parked_blocker(scene: ForecastScene, path, speed: float, cfg) -> Blocker | N
     there = (standing | (scene.mover < 0)) & (gap >= g0 - 1.0) & (gap <= g0 + _LENGTH_M)
     lat_there = lat[there]
     clear = EGO_WIDTH / 2 + cfg.pass_clearance_m
-    steps = np.arange(1, int(cfg.pass_max_offset_m / _STEP_M) + 1) * _STEP_M
+    tried = np.arange(1, int(cfg.pass_max_offset_m / _STEP_M) + 1) * _STEP_M
 
     def least(sign: float) -> float | None:
-        for d in sign * steps:
+        for d in sign * tried:
             if not (np.abs(lat_there - d) < clear).any():
                 return float(d)
         return None
@@ -139,10 +139,8 @@ def pass_candidates(path, speed: float, aim: float, scene: ForecastScene, cfg, s
         whose offset lies within ``cfg.pass_max_offset_m``, one run per speed fraction.
     """
     blocker = parked_blocker(scene, path, speed, cfg) if cfg.pass_parked else None
-    if blocker is None or not cfg.speed_fractions:
-        return np.zeros((0, steps, 2)), np.zeros(0), np.zeros(0)
-    sides = [d for d in (blocker.left, blocker.right) if d is not None]
-    if not sides:
+    sides = [] if blocker is None else [d for d in (blocker.left, blocker.right) if d is not None]
+    if not sides or not cfg.speed_fractions:
         return np.zeros((0, steps, 2)), np.zeros(0), np.zeros(0)
     ramp = max(cfg.ramp_m, cfg.pass_ramp_s * speed)
     ramp = min(ramp, max(blocker.gap_m - 1.0, 6.0))  # beside it before reaching it
