@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pandas as pd
 import pytest
 from omegaconf import OmegaConf
@@ -85,3 +87,19 @@ def test_bad_input_names_the_run(runs, tmp_path):
     )
     with pytest.raises(ValueError, match="a: .* lacks columns"):
         load_run(tmp_path / "e", "world_model", "a")
+
+
+def test_runs_of_other_worlds_are_refused_though_their_scene_names_match(runs):
+    a, b = runs
+    for path, seed in ((a, 1002), (b, 7)):  # the dev interactions against the interaction split
+        settings = {"preset": "interactions", "seed": seed, "scenes": ["s1"]}
+        (path / "closed_loop.json").write_text(json.dumps({"settings": settings}))
+    with pytest.raises(ValueError, match="different worlds.*1002.*7"):
+        compare_runs(load_run(a, "world_model", "a"), load_run(b, "world_model", "b"))
+    # The same preset and seed pair as before; a run without its json is not checked.
+    (b / "closed_loop.json").write_text(json.dumps({"settings": {"preset": "interactions",
+                                                                 "seed": 1002}}))  # fmt: skip
+    assert compare_runs(load_run(a, "world_model"), load_run(b, "world_model"))["scenes"] == 3
+    (b / "closed_loop.json").unlink()
+    assert load_run(b, "world_model").attrs["worlds"] is None
+    assert compare_runs(load_run(a, "world_model"), load_run(b, "world_model"))["scenes"] == 3

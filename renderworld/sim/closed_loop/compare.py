@@ -47,7 +47,23 @@ def load_run(path, planner: str, name: str = "a") -> pd.DataFrame:
         )
     if rows["scene"].duplicated().any():
         raise ValueError(f"{name}: planner {planner!r} drove a scene twice in {csv}")
-    return rows.set_index("scene")
+    out = rows.set_index("scene")
+    out.attrs["worlds"] = _worlds(csv.parent / "closed_loop.json")
+    return out
+
+
+def _worlds(path: Path) -> dict | None:
+    """The preset and seed a run's worlds were built from (its ``closed_loop.json``
+    settings), or None where the file or the settings are missing."""
+    import json
+
+    try:
+        settings = json.loads(path.read_text()).get("settings", {})
+    except (OSError, ValueError):
+        return None
+    if "preset" not in settings:
+        return None
+    return {"preset": settings["preset"], "seed": settings.get("seed")}
 
 
 def compare_runs(a: pd.DataFrame, b: pd.DataFrame, top: int = 5) -> dict:
@@ -66,8 +82,16 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, top: int = 5) -> dict:
         1e-6) and the scenes with an at-fault collision and off the road in each run.
 
     Raises:
-        ValueError: when the runs share no scene, or a shared scene's behaviour differs.
+        ValueError: when the runs drove worlds of another preset or seed (read from each run's
+            ``closed_loop.json`` where there is one: the dev interactions' scene-6000 is not
+            the interaction split's), share no scene, or a shared scene's behaviour differs.
     """
+    wa, wb = a.attrs.get("worlds"), b.attrs.get("worlds")
+    if wa and wb and wa != wb:
+        raise ValueError(
+            f"a, b: the runs drove different worlds (a: {wa}, b: {wb}): a scene name of one is "
+            "another scene in the other"
+        )
     common = [s for s in a.index if s in b.index]
     if not common:
         raise ValueError("a, b: the runs share no scene (different presets or seeds?)")
