@@ -33,7 +33,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from renderworld.constants import KEYFRAME_DT
-from renderworld.planning.idm import Leaders, idm_arc, leaders, too_close
+from renderworld.planning.idm import Leaders, idm_arc, idm_arcs, leaders, too_close
 from renderworld.planning.passing import pass_candidates
 from renderworld.planning.path import PlanPath
 from renderworld.planning.scene import ForecastScene
@@ -299,13 +299,20 @@ def make_candidates(
     leads = leaders(scene, path, cfg.offsets_m, cfg, steps * dt)
     soft = None if cfg.soft_min_accel is None else replace(cfg, idm_min_accel=cfg.soft_min_accel)
     cap_cfg = cfg if cfg.cap_coolness is None else replace(cfg, acc_coolness=cfg.cap_coolness)
-    for d, lead in zip(cfg.offsets_m, leads):
+    # Every offset's IDM runs in one batched loop: first the hold-back (where it shares the
+    # knobs), then the targets.
+    joint = cap_cfg is cfg
+    runs = idm_arcs(speed, [[max(top, speed)] * joint + targets for _ in leads], leads, cfg,
+                    steps, dt)  # fmt: skip
+    for d, lead, arcs in zip(cfg.offsets_m, leads, runs):
         # The plan, no farther than IDM at the plan's top speed would go behind the leaders
         # (its headway is the margin the forecast needs: the exact plan beside it, and the plan
         # held back only near a leader, collided more on the test splits; docs/planner.md).
         s_cap = s_plan
         if cfg.cap_gap_s is None or too_close(s_plan, step_speed, lead, cfg, dt):
-            held = idm_arc(speed, [max(top, speed)], lead, cap_cfg, steps, dt)[0]
+            held = (
+                arcs[0] if joint else idm_arc(speed, [max(top, speed)], lead, cap_cfg, steps, dt)[0]
+            )
             s_cap = np.minimum(s_plan, held)
         if np.allclose(s_cap, s_plan, rtol=0, atol=1e-9):
             s_cap = s_plan
@@ -318,11 +325,7 @@ def make_candidates(
         offs.append(d)
         spd.append(top)
         if targets:
-            wps.append(
-                path.offset(
-                    idm_arc(speed, targets, lead, cfg, steps, dt), d, cfg.ramp_m, cfg.quintic_ramp
-                )
-            )
+            wps.append(path.offset(arcs[int(joint) :], d, cfg.ramp_m, cfg.quintic_ramp))
             kinds += ["idm"] * len(targets)
             offs += [d] * len(targets)
             spd += targets

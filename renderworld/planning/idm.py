@@ -23,7 +23,8 @@ from renderworld.constants import EGO_CENTRE_OFFSET, EGO_LENGTH, EGO_WIDTH
 from renderworld.planning.scene import ForecastScene
 
 __all__ = [
-    "BEHIND_M", "FRONT", "PASS_M", "Leaders", "cah_accel", "idm_arc", "leaders", "too_close",
+    "BEHIND_M", "FRONT", "PASS_M", "Leaders", "cah_accel", "idm_arc", "idm_arcs", "leaders",
+    "too_close",
 ]  # fmt: skip
 
 FRONT = EGO_CENTRE_OFFSET + EGO_LENGTH / 2  # rear axle -> front bumper, metres
@@ -242,3 +243,76 @@ def too_close(s_plan, v_plan, lead: Leaders, cfg, dt) -> bool:
         if gap[0] < cfg.s0 + cfg.cap_gap_s * v_plan[k]:
             return True
     return False
+
+
+def idm_arcs(v_now, targets: list, leads: list, cfg, steps, dt) -> list:
+    """:func:`idm_arc` for several leader sets at once: ``[F_k, steps]`` arc lengths (metres)
+    of the IDM runs towards ``targets[k]`` (m/s) behind ``leads[k]`` (:class:`Leaders` of one
+    :func:`leaders` call: the same rows), for each k; equal to :func:`idm_arc` run on each, which
+    is its reference twin. One loop over the 10 Hz steps serves every run: the check's
+    candidates of all lateral offsets in one go."""
+    sizes = [len(t) for t in targets]
+    if not sum(sizes):
+        return [np.empty((0, steps)) for _ in sizes]
+    rows = {lead.arc.shape[0] for lead in leads}
+    anticipated = {lead.delay is not None for lead in leads}
+    if len(rows) > 1 or len(anticipated) > 1:
+        raise ValueError("leads: expected the Leaders of one leaders() call (the same rows)")
+    q = max(max(lead.arc.shape[1] for lead in leads), 1)
+    n = rows.pop()
+
+    def pad(get, fill):
+        return np.stack([np.pad(get(lead), ((0, 0), (0, q - lead.arc.shape[1])),
+                                constant_values=fill) for lead in leads])  # fmt: skip
+
+    arc = pad(lambda ld: ld.arc, np.inf)
+    speed = pad(lambda ld: ld.speed, 0.0)
+    delay = pad(lambda ld: ld.delay, 0.0) if anticipated.pop() else None
+    entry = pad(lambda ld: ld.entry, np.inf) if delay is not None else None
+    run = np.repeat(np.arange(len(leads)), sizes)  # [F] each row's leader set
+    f = len(run)
+    rng = np.arange(f)
+    v = np.full(f, v_now, dtype=np.float64)
+    s = np.zeros(f)
+    v0 = np.maximum(np.concatenate([np.asarray(t, dtype=np.float64) for t in targets]), 0.1)
+    sub = leads[0].sub_dt
+    n_sub = int(round(dt / sub))
+    cool = cfg.acc_coolness
+    out = np.empty((f, steps))
+    for k in range(steps):
+        for j in range(n_sub):
+            acc = cfg.a_max * (1 - (v / v0) ** 4)
+            row = min(k * n_sub + j, n - 1)
+            front = s + FRONT
+            a_row = arc[run, row]  # [F, Q]
+            ahead = a_row > front[:, None] - BEHIND_M
+            if delay is not None:
+                d_row = delay[run, row]
+                rear = front[:, None] - EGO_LENGTH + v[:, None] * d_row
+                ahead &= (d_row == 0) | (rear < entry[run, row] + PASS_M)
+            gaps = np.where(ahead, a_row - front[:, None], np.inf)
+            idx = gaps.argmin(1)
+            gap = gaps[rng, idx]
+            has = np.isfinite(gap)
+            v_l = np.where(has, speed[run, row][rng, idx], 0.0)
+            if has.any():
+                g = np.maximum(np.where(has, gap, 1.0), 0.05)
+                dv = v - v_l
+                s_star = cfg.s0 + v * cfg.headway + v * dv / (2 * np.sqrt(cfg.a_max * cfg.b))
+                inter = cfg.a_max * (np.maximum(s_star, 0.0) / g) ** 2
+                if cfg.idm_plus:
+                    acc = np.where(has, np.minimum(acc, cfg.a_max - inter), acc)
+                else:
+                    acc = acc - np.where(has, inter, 0.0)
+                if cool > 0:
+                    later = speed[run, min(row + 1, n - 1)][rng, idx]
+                    a_l = np.where(has, (later - speed[run, row][rng, idx]) / sub, 0.0)
+                    cah = cah_accel(v, v_l, a_l, g, cfg.a_max)
+                    blend = (1 - cool) * acc + cool * (cah + cfg.b * np.tanh((acc - cah) / cfg.b))
+                    acc = np.where(has & (acc < cah), blend, acc)
+            acc = np.maximum(acc, cfg.idm_min_accel)
+            v_new = np.maximum(v + acc * sub, 0.0)
+            s = s + 0.5 * (v + v_new) * sub
+            v = v_new
+        out[:, k] = s
+    return np.split(out, np.cumsum(sizes)[:-1])

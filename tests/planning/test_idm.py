@@ -7,6 +7,7 @@ at constant velocity), as in ``test_checked``.
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from renderworld.planning.candidates import CheckConfig, PlanPath, leaders
 from renderworld.planning.checked import check_plan
@@ -158,3 +159,27 @@ def test_cap_coolness_softens_the_plans_hold_back_only():
     assert first_decel(plain.waypoints[0]) > 6.0 and first_decel(cool.waypoints[0]) < 4.05
     idm = [i for i, k in enumerate(plain.kind) if k == "idm"]
     np.testing.assert_array_equal(plain.waypoints[idm], cool.waypoints[idm])
+
+
+@pytest.mark.parametrize(
+    "knobs", [{}, {"anticipate_s": 0.0}, {"acc_coolness": 0.99}, {"idm_plus": True}]
+)
+def test_the_batched_idm_runs_equal_their_reference_twin(knobs):
+    # Three lateral offsets' leaders in one scene (a car cutting in, a slow lead car, a
+    # pedestrian), each with its own targets: the batched loop gives the runs one by one.
+    from renderworld.planning.idm import idm_arcs
+
+    lead_car = (CAR, lambda t: (30.0 + 6.0 * t, -0.8), (3, 2))
+    ped = (PED, lambda t: (18.0, 4.0 - 1.2 * t), (1, 1))
+    occ, poses = history([cut_in(), lead_car, ped], road_half_width=8.0)
+    scene = forecast_scene(occ, poses, GRID, 6)
+    cfg = replace(CheckConfig(), **knobs)
+    leads = leaders(scene, PATH, (0.0, 2.0, -2.0), cfg, 3.0)
+    targets = [[V, 7.5, 5.0], [V], [12.0, 2.0]]
+    batched = idm_arcs(V, targets, leads, cfg, 6, 0.5)
+    for t, lead, got in zip(targets, leads, batched):
+        np.testing.assert_array_equal(got, idm_arc(V, t, lead, cfg, 6, 0.5))
+    assert len(idm_arcs(V, [[], []], leads[:2], cfg, 6, 0.5)[0]) == 0
+    with pytest.raises(ValueError, match="leads"):
+        short = leaders(scene, PATH, (0.0,), cfg, 2.0)
+        idm_arcs(V, [[V], [V]], [leads[0], short[0]], cfg, 6, 0.5)
