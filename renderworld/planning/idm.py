@@ -199,18 +199,30 @@ def idm_arc(v_now, targets, lead: Leaders, cfg, steps, dt) -> np.ndarray:
     With ``cfg.idm_plus`` the IDM acceleration is IDM+'s (Schakel, Knoop, van Arem 2010):
     ``a_max min(1 - (v/v0)^4, 1 - (s*/s)^2)``, so a car at its desired speed does not brake for
     a leader farther than the desired gap (IDM's sum brakes for any leader there)."""
+    v0 = np.asarray(targets, dtype=np.float64)
+    cool = cfg.acc_coolness > 0
+
+    def find(row, front, v):
+        return lead.nearest(row, front, v, with_accel=cool)
+
+    return _idm_loop(v_now, v0, find, lead.sub_dt, cfg, steps, dt)
+
+
+def _idm_loop(v_now, targets: np.ndarray, find, sub: float, cfg, steps, dt) -> np.ndarray:
+    """[F, steps] arc lengths of IDM runs from ``v_now`` towards ``targets`` [F] (m/s), each
+    behind the leader ``find(row, front bumpers [F], speeds [F])`` gives at leader row ``row``:
+    (gap [F] metres, its speed [F] m/s, and with ``cfg.acc_coolness`` its acceleration [F])."""
     f = len(targets)
     v = np.full(f, v_now, dtype=np.float64)
     s = np.zeros(f)
-    v0 = np.maximum(np.asarray(targets, dtype=np.float64), 0.1)
-    sub = lead.sub_dt
+    v0 = np.maximum(targets, 0.1)
     n_sub = int(round(dt / sub))
     cool = cfg.acc_coolness
     out = np.empty((f, steps))
     for k in range(steps):
         for j in range(n_sub):
             acc = cfg.a_max * (1 - (v / v0) ** 4)
-            found = lead.nearest(k * n_sub + j, s + FRONT, v, with_accel=cool > 0)
+            found = find(k * n_sub + j, s + FRONT, v)
             gap, v_l = found[:2]
             has = np.isfinite(gap)
             if has.any():
@@ -270,49 +282,27 @@ def idm_arcs(v_now, targets: list, leads: list, cfg, steps, dt) -> list:
     delay = pad(lambda ld: ld.delay, 0.0) if anticipated.pop() else None
     entry = pad(lambda ld: ld.entry, np.inf) if delay is not None else None
     run = np.repeat(np.arange(len(leads)), sizes)  # [F] each row's leader set
-    f = len(run)
-    rng = np.arange(f)
-    v = np.full(f, v_now, dtype=np.float64)
-    s = np.zeros(f)
-    v0 = np.maximum(np.concatenate([np.asarray(t, dtype=np.float64) for t in targets]), 0.1)
-    sub = leads[0].sub_dt
-    n_sub = int(round(dt / sub))
-    cool = cfg.acc_coolness
-    out = np.empty((f, steps))
-    for k in range(steps):
-        for j in range(n_sub):
-            acc = cfg.a_max * (1 - (v / v0) ** 4)
-            row = min(k * n_sub + j, n - 1)
-            front = s + FRONT
-            a_row = arc[run, row]  # [F, Q]
-            ahead = a_row > front[:, None] - BEHIND_M
-            if delay is not None:
-                d_row = delay[run, row]
-                rear = front[:, None] - EGO_LENGTH + v[:, None] * d_row
-                ahead &= (d_row == 0) | (rear < entry[run, row] + PASS_M)
-            gaps = np.where(ahead, a_row - front[:, None], np.inf)
-            idx = gaps.argmin(1)
-            gap = gaps[rng, idx]
-            has = np.isfinite(gap)
-            v_l = np.where(has, speed[run, row][rng, idx], 0.0)
-            if has.any():
-                g = np.maximum(np.where(has, gap, 1.0), 0.05)
-                dv = v - v_l
-                s_star = cfg.s0 + v * cfg.headway + v * dv / (2 * np.sqrt(cfg.a_max * cfg.b))
-                inter = cfg.a_max * (np.maximum(s_star, 0.0) / g) ** 2
-                if cfg.idm_plus:
-                    acc = np.where(has, np.minimum(acc, cfg.a_max - inter), acc)
-                else:
-                    acc = acc - np.where(has, inter, 0.0)
-                if cool > 0:
-                    later = speed[run, min(row + 1, n - 1)][rng, idx]
-                    a_l = np.where(has, (later - speed[run, row][rng, idx]) / sub, 0.0)
-                    cah = cah_accel(v, v_l, a_l, g, cfg.a_max)
-                    blend = (1 - cool) * acc + cool * (cah + cfg.b * np.tanh((acc - cah) / cfg.b))
-                    acc = np.where(has & (acc < cah), blend, acc)
-            acc = np.maximum(acc, cfg.idm_min_accel)
-            v_new = np.maximum(v + acc * sub, 0.0)
-            s = s + 0.5 * (v + v_new) * sub
-            v = v_new
-        out[:, k] = s
+    rng = np.arange(len(run))
+    cool = cfg.acc_coolness > 0
+
+    def find(i, front, v):  # Leaders.nearest, each row against its own leader set
+        row = min(i, n - 1)
+        a_row = arc[run, row]  # [F, Q]
+        ahead = a_row > front[:, None] - BEHIND_M
+        if delay is not None:
+            d_row = delay[run, row]
+            rear = front[:, None] - EGO_LENGTH + v[:, None] * d_row
+            ahead &= (d_row == 0) | (rear < entry[run, row] + PASS_M)
+        gaps = np.where(ahead, a_row - front[:, None], np.inf)
+        idx = gaps.argmin(1)
+        gap = gaps[rng, idx]
+        has = np.isfinite(gap)
+        v_l = np.where(has, speed[run, row][rng, idx], 0.0)
+        if not cool:
+            return gap, v_l
+        later = speed[run, min(row + 1, n - 1)][rng, idx]
+        return gap, v_l, np.where(has, (later - speed[run, row][rng, idx]) / leads[0].sub_dt, 0.0)
+
+    v0 = np.concatenate([np.asarray(t, dtype=np.float64) for t in targets])
+    out = _idm_loop(v_now, v0, find, leads[0].sub_dt, cfg, steps, dt)
     return np.split(out, np.cumsum(sizes)[:-1])

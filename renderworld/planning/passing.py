@@ -57,14 +57,6 @@ class Blocker:
     right: float | None
 
 
-def _lateral(path, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(arc [K], lateral offset [K]) of points [K, 2] relative to ``path``, metres."""
-    arc = path.project(pts)
-    xy, h = path.at(arc)
-    rel = pts - xy
-    return arc, -np.sin(h) * rel[:, 0] + np.cos(h) * rel[:, 1]
-
-
 def _standing(scene: ForecastScene, parked_s: float) -> np.ndarray:
     """[P] bool: points of road users (not pedestrians or two-wheelers) that stood still over
     at least ``parked_s`` seconds of the history, or that the forecast leaves within
@@ -98,7 +90,7 @@ def parked_blocker(scene: ForecastScene, path, speed: float, cfg) -> Blocker | N
     if not len(scene.points):
         return None
     half = EGO_WIDTH / 2 + cfg.corridor_margin_m
-    arc, lat = _lateral(path, scene.points)
+    arc, lat = path.frenet(scene.points)
     gap = arc - FRONT
     standing = _standing(scene, cfg.pass_parked_s)
     inside = standing & (np.abs(lat) <= half) & (gap > 0.0)

@@ -66,6 +66,14 @@ class PlanPath:
         g = dist.argmin(1)
         return self.s[g] + u[np.arange(len(g)), g] * np.diff(self.s)[g]
 
+    def frenet(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(arc lengths [K], lateral offsets [K], left +) of positions [K, 2], metres, from
+        the path points nearest to them (:meth:`project`)."""
+        arc = self.project(xy)
+        on, h = self.at(arc)
+        rel = np.asarray(xy, dtype=np.float64) - on
+        return arc, -np.sin(h) * rel[:, 0] + np.cos(h) * rel[:, 1]
+
     def at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(positions [..., 2], headings [...]) at arc lengths ``s`` (clipped to the path)."""
         s = np.clip(np.asarray(s, dtype=np.float64), 0.0, self.length)

@@ -179,6 +179,9 @@ def test_the_batched_idm_runs_equal_their_reference_twin(knobs):
     batched = idm_arcs(V, targets, leads, cfg, 6, 0.5)
     for t, lead, got in zip(targets, leads, batched):
         np.testing.assert_array_equal(got, idm_arc(V, t, lead, cfg, 6, 0.5))
+    # The leaders matter: shifted 2 m left, towards the pedestrian, the run at the ego's speed
+    # ends far short of the 30 m of a free road.
+    assert batched[1][0, -1] < 20.0
     assert len(idm_arcs(V, [[], []], leads[:2], cfg, 6, 0.5)[0]) == 0
     with pytest.raises(ValueError, match="leads"):
         short = leaders(scene, PATH, (0.0,), cfg, 2.0)
