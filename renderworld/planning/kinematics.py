@@ -4,7 +4,8 @@ The ego is a unicycle with state (x, y, yaw, speed) in the scene frame (metres, 
 the rear axle, as every ego pose of the package). Between two plans (one keyframe, 0.5 s) it is
 advanced in :data:`SIM_DT` steps toward a reference: a cubic Hermite curve in time through the
 current position (with the current velocity) and the plan's waypoints (velocities by central
-differences, capped as in Fritsch-Carlson's monotone cubic so that it never overshoots a stop),
+differences, at the last waypoint along the arc through the last three, capped as in
+Fritsch-Carlson's monotone cubic so that it never overshoots a stop),
 so a plan the car can drive is driven as planned. With ``spline=True`` the tangents at the
 waypoints are instead those of the C2 cubic spline (the current velocity at the start, zero
 acceleration at the end): the acceleration, hence the heading rate, does not jump at a waypoint
@@ -102,10 +103,28 @@ def _hermite(p0, p1, v0, v1, u, h):
     return pos, der
 
 
+def _arc_end_tangent(pts: np.ndarray, h: float) -> np.ndarray:
+    """[..., 2] m/s: the last chord's speed along the heading a circular arc through the last
+    three knots [..., M, 2] has at the end (the chord's own direction where M < 3, a chord is
+    under 1 cm or the path folds back): a turn goes on turning to the end of the curve instead
+    of straightening in its last segment and swinging the heading back."""
+    last = pts[..., -1, :] - pts[..., -2, :]
+    if pts.shape[-2] < 3:
+        return last / h
+    prev = pts[..., -2, :] - pts[..., -3, :]
+    l1, l2 = np.hypot(prev[..., 0], prev[..., 1]), np.hypot(last[..., 0], last[..., 1])
+    a2 = np.arctan2(last[..., 1], last[..., 0])
+    turn = _wrap(a2 - np.arctan2(prev[..., 1], prev[..., 0]))
+    arc = (l1 > 0.01) & (l2 > 0.01) & (np.abs(turn) < np.pi / 2)
+    end = a2 + np.where(arc, turn * l2 / np.maximum(l1 + l2, 1e-9), 0.0)
+    return (l2 / h)[..., None] * np.stack([np.cos(end), np.sin(end)], -1)
+
+
 def hermite_tangents(pts: np.ndarray, v0: np.ndarray, h: float, spline: bool) -> np.ndarray:
     """Velocities at the knots of the tracked reference curve (module docstring).
 
-    Catmull-Rom (central differences, the last one backwards), or with ``spline`` the C2 cubic
+    Catmull-Rom (central differences; at the end the arc through the last three knots:
+    :func:`_arc_end_tangent`), or with ``spline`` the C2 cubic
     spline's (tridiagonal solve by the Thomas algorithm: elementwise, so one plan and a batch
     give the same bits), then capped as Fritsch-Carlson's monotone cubic.
 
@@ -140,7 +159,7 @@ def hermite_tangents(pts: np.ndarray, v0: np.ndarray, h: float, spline: bool) ->
             vel[..., i, :] = rhs[..., i, :] - upper[i] * vel[..., i + 1, :]
     else:
         vel[..., 1:-1, :] = (pts[..., 2:, :] - pts[..., :-2, :]) / (2 * h)
-        vel[..., -1, :] = (pts[..., -1, :] - pts[..., -2, :]) / h
+        vel[..., -1, :] = _arc_end_tangent(pts, h)
     # Fritsch-Carlson: a tangent at most 3x the shorter neighbouring segment's speed, so the
     # curve never overshoots a waypoint where the plan slows down or stops.
     seg = np.hypot(pts[..., 1:, 0] - pts[..., :-1, 0], pts[..., 1:, 1] - pts[..., :-1, 1]) / h
