@@ -8,7 +8,10 @@ the ground truth of the raw plan, of the plan's candidate and of the chosen one.
 
 * per chosen kind: windows, mean L2 at 3 s of the raw and of the checked plan;
 * where the learned plan lost: which of its sub-scores failed (NC, DAC, TTC, C, EP < 0.8);
-* where it won but was held back: how much the hold-back cost in L2.
+* where it won but was held back: how much the hold-back cost in L2;
+* the ground-truth future scored by the same check, as one more candidate of each window (it
+  takes no part in the choice): how often the check would refuse what the logged car did, and
+  which sub-score refused it (the comfort quantity named) — the check's false alarms.
 
 Score development splits with it, not test splits. ``--check KNOB=VALUE`` sets
 :class:`~renderworld.planning.candidates.CheckConfig` knobs (as ``tools/eval.py check=``).
@@ -36,6 +39,9 @@ sys.path.insert(0, str(ROOT))
 import renderworld.planning.checked as checked_mod  # noqa: E402
 import renderworld.training.stages.world_model.pose_warp as wmp  # noqa: E402
 from benchmarks.dev_eval import add_eval_args, check_files, evaluate_world_model  # noqa: E402
+from renderworld.planning.candidates import Candidates  # noqa: E402
+
+SUBSCORES = ("NC", "DAC", "EP", "TTC", "C", "score")
 
 
 def window_record(result, raw: np.ndarray, future: np.ndarray, valid: np.ndarray) -> dict:
@@ -59,11 +65,15 @@ def window_record(result, raw: np.ndarray, future: np.ndarray, valid: np.ndarray
         "kind": c.kind[b], "offset": float(c.offset_m[b]), "horizon_step": last,
         "l2_raw": l2(raw), "l2_checked": l2(result.trajectory), "l2_plan_cand": l2(c.waypoints[0]),
         "plan_held": bool(held),
-        "plan": {k: float(getattr(c, k)[0]) for k in ("NC", "DAC", "EP", "TTC", "C", "score")},
+        "plan": {k: float(getattr(c, k)[0]) for k in SUBSCORES},
         "plan_choice": float(c.choice[0]),
-        "best": {k: float(getattr(c, k)[b]) for k in ("NC", "DAC", "EP", "TTC", "C", "score")},
+        "best": {k: float(getattr(c, k)[b]) for k in SUBSCORES},
         "best_choice": float(c.choice[b]),
     }  # fmt: skip
+
+
+def _fails(p: dict) -> list:
+    return [k for k in ("NC", "DAC", "TTC", "C") if p[k] < 1] + (["EP"] if p["EP"] < 0.8 else [])
 
 
 def summary(records: list[dict]) -> str:
@@ -83,9 +93,7 @@ def summary(records: list[dict]) -> str:
     lost = [r for r in full if r["kind"] != "plan" or r["offset"]]
     fails = defaultdict(int)
     for r in lost:
-        p = r["plan"]
-        why = [k for k in ("NC", "DAC", "TTC", "C") if p[k] < 1] + (["EP"] if p["EP"] < 0.8 else [])
-        fails[", ".join(why) or "none (a margin)"] += 1
+        fails[", ".join(_fails(r["plan"])) or "none (a margin)"] += 1
     lines += ["", f"The learned plan lost in {len(lost)} windows; its failed sub-scores:", "",
               "| failed | windows |", "|---|---|"]  # fmt: skip
     lines += [f"| {k} | {v} |" for k, v in sorted(fails.items(), key=lambda kv: -kv[1])]
@@ -94,6 +102,18 @@ def summary(records: list[dict]) -> str:
         lines += ["", f"The plan won but was held back by IDM in {len(held)} windows: L2 at 3 s "
                   f"raw {np.mean([r['l2_raw'] for r in held]):.2f} m, held "
                   f"{np.mean([r['l2_checked'] for r in held]):.2f} m"]  # fmt: skip
+    gt = [r for r in full if "gt" in r]
+    if gt:
+        refused = defaultdict(int)
+        for r in gt:
+            why = _fails(r["gt"])
+            if "C" in why:
+                why[why.index("C")] = f"C ({r['gt_comfort_worst']})"
+            refused[", ".join(why)] += 1
+        n_bad = len(gt) - refused.pop("", 0)
+        lines += ["", f"The ground-truth future, scored by the same check: refused in {n_bad} of "
+                  f"{len(gt)} windows", "", "| failed | windows |", "|---|---|"]  # fmt: skip
+        lines += [f"| {k} | {v} |" for k, v in sorted(refused.items(), key=lambda kv: -kv[1])]
     return "\n".join(lines)
 
 
@@ -114,32 +134,53 @@ def main() -> None:
         return result
 
     calls, seen = [0], set()
+    truth: list = []  # [(future [S, 2], valid [S])] of the batch's windows, in planning order
+    gt_scores: list = []
+    original_score = checked_mod.score_candidates
+
+    def score_candidates(cands, scene, past, cfg, limits=None, dt=0.5, previous=None):
+        out = original_score(cands, scene, past, cfg, limits, dt, previous)
+        fut, valid = truth.pop(0) if truth else (None, None)
+        if fut is not None and valid.all():  # the logged future, beside, not chosen from
+            one = Candidates(fut[None], ["gt"], np.zeros(1), np.zeros(1), cands.reference_m,
+                             cands.path)  # fmt: skip
+            g = original_score(one, scene, past, cfg, limits, dt, previous)
+            gt_scores.append({"gt": {k: float(getattr(g, k)[0]) for k in SUBSCORES},
+                              "gt_comfort_worst": g.comfort_worst[0]})  # fmt: skip
+        else:
+            gt_scores.append({})
+        return out
 
     def checked_plans(stage, model, batch, setting, poses):
         # Called twice per batch: the GT command's plans first, then the history command's;
         # the evaluation's pictures plan some windows again (kept once, by sample token).
         pending.clear()
+        gt_scores.clear()
+        fut = batch["future_poses"][..., :2].double().cpu().numpy()
+        valid = batch["future_mask"].bool().cpu().numpy()[:, : fut.shape[1]]
+        truth[:] = list(zip(fut, valid))
         out = original_checked(stage, model, batch, setting, poses)
         command = ("gt", "history")[calls[0] % 2]
         calls[0] += 1
-        fut = batch["future_poses"][..., :2].double().cpu().numpy()
-        valid = batch["future_mask"].bool().cpu().numpy()[:, : fut.shape[1]]
         raw = poses[..., :2].double().cpu().numpy()
         tokens = batch["meta"]["sample_tokens"][stage.settings.history - 1]
         for i, res in enumerate(pending):
             if (command, tokens[i]) not in seen:
                 seen.add((command, tokens[i]))
                 rec = window_record(res, raw[i], fut[i], valid[i])
-                records.append({"command": command, "token": tokens[i], **rec})
+                extra = gt_scores[i] if i < len(gt_scores) else {}
+                records.append({"command": command, "token": tokens[i], **rec, **extra})
         return out
 
     checked_mod.check_plan, wmp.checked_plans = check_plan, checked_plans
+    checked_mod.score_candidates = score_candidates
     run_dir = Path(args.out).resolve()
     knobs = ", ".join(kv.replace("=", ": ", 1) for kv in args.check)
     try:
         evaluate_world_model(args, run_dir, *([f"check={{{knobs}}}"] if args.check else []))
     finally:
         checked_mod.check_plan, wmp.checked_plans = original_check, original_checked
+        checked_mod.score_candidates = original_score
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "checked_choice.json").write_text(json.dumps(records, indent=1))
     print(summary([r for r in records if r["command"] == "gt"]))

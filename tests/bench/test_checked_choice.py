@@ -1,0 +1,34 @@
+"""benchmarks/checked_choice.py's summary: the choice per kind and the ground truth's refusals."""
+
+from benchmarks.checked_choice import summary
+
+_OK = {"NC": 1.0, "DAC": 1.0, "EP": 1.0, "TTC": 1.0, "C": 1.0, "score": 1.0}
+
+
+def _record(kind="plan", gt=None, worst="yaw_accel", **plan):
+    rec = {"command": "gt", "token": "t", "kind": kind, "offset": 0.0, "horizon_step": 5,
+           "l2_raw": 1.0, "l2_checked": 2.0, "l2_plan_cand": 1.5, "plan_held": False,
+           "plan": {**_OK, **plan}, "plan_choice": 1.0, "best": _OK, "best_choice": 1.0}  # fmt: skip
+    if gt is not None:
+        rec["gt"], rec["gt_comfort_worst"] = {**_OK, **gt}, worst
+    return rec
+
+
+def test_the_ground_truth_refusals_are_counted_by_failed_sub_score():
+    records = [
+        _record(gt={}),  # the check accepts what the car did
+        _record(gt={"C": 0.0}),
+        _record(kind="steady_idm", C=0.0, gt={"C": 0.0, "TTC": 0.0}, worst="lon_jerk"),
+        _record(gt={"EP": 0.5}),
+        _record(),  # a window whose future is cut short: no ground-truth row
+    ]
+    text = summary(records)
+    assert "The learned plan lost in 1 windows" in text
+    assert "refused in 3 of 4 windows" in text
+    assert "| C (yaw_accel) | 1 |" in text
+    assert "| TTC, C (lon_jerk) | 1 |" in text
+    assert "| EP | 1 |" in text
+
+
+def test_without_ground_truth_rows_the_table_is_left_out():
+    assert "ground-truth future" not in summary([_record(), _record(kind="brake", DAC=0.0)])
