@@ -8,7 +8,8 @@ _OK = {"NC": 1.0, "DAC": 1.0, "EP": 1.0, "TTC": 1.0, "C": 1.0, "score": 1.0}
 def _record(kind="plan", gt=None, worst="yaw_accel", **plan):
     rec = {"command": "gt", "token": "t", "kind": kind, "offset": 0.0, "horizon_step": 5,
            "l2_raw": 1.0, "l2_checked": 2.0, "l2_plan_cand": 1.5, "plan_held": False,
-           "plan": {**_OK, **plan}, "plan_choice": 1.0, "best": _OK, "best_choice": 1.0}  # fmt: skip
+           "plan": {**_OK, **plan}, "plan_choice": 1.0, "best": _OK,
+           "best_choice": 1.0}  # fmt: skip
     if gt is not None:
         rec["gt"], rec["gt_comfort_worst"] = {**_OK, **gt}, worst
     return rec
