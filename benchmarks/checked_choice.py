@@ -39,6 +39,7 @@ sys.path.insert(0, str(ROOT))
 import renderworld.planning.checked as checked_mod  # noqa: E402
 import renderworld.training.stages.world_model.pose_warp as wmp  # noqa: E402
 from benchmarks.dev_eval import add_eval_args, check_files, evaluate_world_model  # noqa: E402
+from renderworld.constants import KEYFRAME_DT  # noqa: E402
 from renderworld.planning.candidates import Candidates  # noqa: E402
 
 SUBSCORES = ("NC", "DAC", "EP", "TTC", "C", "score")
@@ -138,7 +139,7 @@ def main() -> None:
     gt_scores: list = []
     original_score = checked_mod.score_candidates
 
-    def score_candidates(cands, scene, past, cfg, limits=None, dt=0.5, previous=None):
+    def score_candidates(cands, scene, past, cfg, limits=None, dt=KEYFRAME_DT, previous=None):
         out = original_score(cands, scene, past, cfg, limits, dt, previous)
         fut, valid = truth.pop(0) if truth else (None, None)
         if fut is not None and valid.all():  # the logged future, beside, not chosen from

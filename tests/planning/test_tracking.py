@@ -82,7 +82,7 @@ def test_a_turn_into_a_junction_is_comfortable_to_the_end_of_the_plan():
     curves drive the plan within every NAVSIM bound to its end, and the heading keeps turning
     right through the last segment (the end tangent is the arc's through the last three
     waypoints: along the last chord the curve straightened there and swung the heading back,
-    1.5x the yaw-acceleration bound; the C2 spline's natural end straightens gently)."""
+    1.4x the yaw-acceleration bound; the C2 spline's natural end straightens gently)."""
     v, r, straight = 5.5, 12.0, 5.5
     s = v * 0.5 * np.arange(1, 7)
     turn = np.maximum(s - straight, 0.0) / r
