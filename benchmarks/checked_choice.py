@@ -9,6 +9,8 @@ the ground truth of the raw plan, of the plan's candidate and of the chosen one.
 * per chosen kind: windows, mean L2 at 3 s of the raw and of the checked plan;
 * where the learned plan lost: which of its sub-scores failed (NC, DAC, TTC, C, EP < 0.8);
 * where it won but was held back: how much the hold-back cost in L2;
+* where the checked plan meets a ground-truth box at 3 s (the evaluation's collision count):
+  which candidate was driven, and whether the raw plan met one too;
 * the ground-truth future scored by the same check, as one more candidate of each window (it
   takes no part in the choice): how often the check would refuse what the logged car did, and
   which sub-score refused it (the comfort quantity named) — the check's false alarms.
@@ -40,6 +42,7 @@ import renderworld.planning.checked as checked_mod  # noqa: E402
 import renderworld.training.stages.world_model.pose_warp as wmp  # noqa: E402
 from benchmarks.dev_eval import add_eval_args, check_files, evaluate_world_model  # noqa: E402
 from renderworld.constants import KEYFRAME_DT  # noqa: E402
+from renderworld.metrics import collisions_with_boxes  # noqa: E402
 from renderworld.planning.candidates import Candidates  # noqa: E402
 
 SUBSCORES = ("NC", "DAC", "EP", "TTC", "C", "score")
@@ -103,6 +106,16 @@ def summary(records: list[dict]) -> str:
         lines += ["", f"The plan won but was held back by IDM in {len(held)} windows: L2 at 3 s "
                   f"raw {np.mean([r['l2_raw'] for r in held]):.2f} m, held "
                   f"{np.mean([r['l2_checked'] for r in held]):.2f} m"]  # fmt: skip
+    hit = [r for r in full if r.get("hit_checked")]
+    if "hit_checked" in (full[0] if full else {}):
+        kinds = defaultdict(int)
+        for r in hit:
+            kinds[(r["kind"] if r["kind"] != "plan" or r["offset"] else "plan, no offset")
+                  + (", the raw plan too" if r["hit_raw"] else "")] += 1  # fmt: skip
+        lines += ["", f"The checked plan meets a ground-truth box at 3 s in {len(hit)} windows "
+                  f"(the raw plan in {sum(r['hit_raw'] for r in full)}):", "",
+                  "| driven | windows |", "|---|---|"]  # fmt: skip
+        lines += [f"| {k} | {v} |" for k, v in sorted(kinds.items(), key=lambda kv: -kv[1])]
     gt = [r for r in full if "gt" in r]
     if gt:
         refused = defaultdict(int)
@@ -164,12 +177,19 @@ def main() -> None:
         command = ("gt", "history")[calls[0] % 2]
         calls[0] += 1
         raw = poses[..., :2].double().cpu().numpy()
+        boxes = batch["future_boxes"][..., :5].cpu().numpy()
+        boxes_ok = batch["future_boxes_mask"].cpu().numpy().astype(bool)
         tokens = batch["meta"]["sample_tokens"][stage.settings.history - 1]
         for i, res in enumerate(pending):
             if (command, tokens[i]) not in seen:
                 seen.add((command, tokens[i]))
                 rec = window_record(res, raw[i], fut[i], valid[i])
                 extra = gt_scores[i] if i < len(gt_scores) else {}
+                if valid[i].all():  # at 3 s, as the evaluation's collision count
+                    trajs = np.stack([res.trajectory, raw[i]]).astype(np.float64)
+                    hits, _ = collisions_with_boxes(trajs, boxes[i], boxes_ok[i])
+                    extra = {**extra, "hit_checked": bool(hits[0, -1]),
+                             "hit_raw": bool(hits[1, -1])}  # fmt: skip
                 records.append({"command": command, "token": tokens[i], **rec, **extra})
         return out
 

@@ -33,3 +33,14 @@ def test_the_ground_truth_refusals_are_counted_by_failed_sub_score():
 
 def test_without_ground_truth_rows_the_table_is_left_out():
     assert "ground-truth future" not in summary([_record(), _record(kind="brake", DAC=0.0)])
+
+
+def test_collisions_at_3_s_are_counted_by_the_candidate_driven():
+    records = [_record(), _record(kind="idm"), _record(), _record(kind="brake")]
+    for r, (checked, raw) in zip(records, [(True, True), (True, False), (False, True),
+                                           (False, False)]):  # fmt: skip
+        r["hit_checked"], r["hit_raw"] = checked, raw
+    text = summary(records)
+    assert "meets a ground-truth box at 3 s in 2 windows (the raw plan in 2)" in text
+    assert "| plan, no offset, the raw plan too | 1 |" in text
+    assert "| idm | 1 |" in text
