@@ -25,6 +25,7 @@ def test_a_trace_replays_the_run_and_names_each_choice(tmp_path):
         assert r["kind"] == c.kind[c.best] and r["score"] == pytest.approx(c.score[c.best])
         assert r["plan_NC"] == c.NC[0] and r["plan_score"] == pytest.approx(c.score[0])
         assert r["accel_min"] <= r["accel_max"]
+        assert r["yaw_rate_min"] <= r["yaw_rate_max"]
         # An uncomfortable learned plan names the quantity it broke, and by how much.
         if c.C[0] == 0:
             name, times = r["plan_comfort"].split()
@@ -32,6 +33,13 @@ def test_a_trace_replays_the_run_and_names_each_choice(tmp_path):
         else:
             assert r["plan_comfort"] == ""
     assert rows[0]["speed"] == pytest.approx(episode.states[0, 3])
+    # The driven heading rate of each plan's span (10 Hz states, central differences).
+    rate = np.gradient(np.unwrap(episode.states[:, 2]), 0.1)
+    t = np.asarray(episode.times) - episode.times[0]
+    for k in (0, len(rows) // 2):
+        span = (t >= rows[k]["t"] - 1e-9) & (t < rows[k]["t"] + 0.5 - 1e-9)
+        assert rows[k]["yaw_rate_min"] == pytest.approx(rate[span].min())
+        assert rows[k]["yaw_rate_max"] == pytest.approx(rate[span].max())
     path = write_trace(world, [raw, checked], tmp_path / "out")
     text = path.read_text()
     assert path.name == f"trace_{world.name}.md" and "world_model:" in text

@@ -59,19 +59,23 @@ def trace_rows(episode: Episode, results: list) -> list[dict]:
         (the chosen candidate's target speed m/s or deceleration m/s^2), ``score``,
         ``plan_score`` and ``plan_<NC|DAC|EP|TTC|C>`` (the learned plan's), ``plan_comfort``
         (its worst comfort quantity and how far, a multiple of the bound; "" when comfortable
-        or not recorded), and ``accel_min``,
-        ``accel_max`` (m/s^2 driven until the next plan; NaN past the episode's end).
+        or not recorded), ``accel_min``, ``accel_max`` (m/s^2 driven until the next plan)
+        and ``yaw_rate_min``, ``yaw_rate_max`` (rad/s, left +, the same span: a heading rate
+        that swings sign from plan to plan is a weave; NaN past the episode's end).
     """
     times = np.asarray(episode.times, dtype=np.float64)
     speed = np.asarray(episode.states, dtype=np.float64)[:, 3]
     accel = np.gradient(speed, SIM_DT) if len(speed) > 1 else np.zeros_like(speed)
+    yaw = np.unwrap(np.asarray(episode.states, dtype=np.float64)[:, 2])
+    yaw_rate = np.gradient(yaw, SIM_DT) if len(yaw) > 1 else np.zeros_like(yaw)
     rows = []
     for k, (t, result) in enumerate(results):
         c = result.candidates
         b = int(c.best)
         i = int(np.argmin(np.abs(times - t)))
         t_next = results[k + 1][0] if k + 1 < len(results) else times[-1]
-        seg = accel[(times >= t - 1e-9) & (times < t_next - 1e-9)]
+        span = (times >= t - 1e-9) & (times < t_next - 1e-9)
+        seg, turn = accel[span], yaw_rate[span]
         row = {
             "t": round(float(t - times[0]), 3),
             "speed": float(speed[i]),
@@ -84,6 +88,8 @@ def trace_rows(episode: Episode, results: list) -> list[dict]:
             "plan_comfort": _worst_comfort(c),
             "accel_min": float(seg.min()) if len(seg) else float("nan"),
             "accel_max": float(seg.max()) if len(seg) else float("nan"),
+            "yaw_rate_min": float(turn.min()) if len(turn) else float("nan"),
+            "yaw_rate_max": float(turn.max()) if len(turn) else float("nan"),
         }
         rows.append(row)
     return rows
@@ -106,8 +112,8 @@ def trace_markdown(scene: str, planner: str, row: dict, rows: list[dict]) -> str
         head,
         "",
         "| t s | speed m/s | chosen | offset m | target | score | learned plan: score; NC DAC EP "
-        "TTC C | driven accel m/s² |",
-        "|---:|---:|---|---:|---:|---:|---|---|",
+        "TTC C | driven accel m/s² | driven yaw rate rad/s |",
+        "|---:|---:|---|---:|---:|---:|---|---|---|",
     ]
     for r in rows:
         plan = " ".join(f"{r[f'plan_{n}']:.2f}" if n == "EP" else f"{r[f'plan_{n}']:.0f}"
@@ -116,12 +122,13 @@ def trace_markdown(scene: str, planner: str, row: dict, rows: list[dict]) -> str
             f"| {r['t']:.1f} | {r['speed']:.2f} | {r['kind']} | {r['offset_m']:+.0f} | "
             f"{r['target']:.2f} | {r['score']:.3f} | {r['plan_score']:.3f}; {plan}"
             f"{' (' + r['plan_comfort'] + ')' if r.get('plan_comfort') else ''} | "
-            f"{r['accel_min']:+.1f} … {r['accel_max']:+.1f} |"
+            f"{r['accel_min']:+.1f} … {r['accel_max']:+.1f} | "
+            f"{r['yaw_rate_min']:+.2f} … {r['yaw_rate_max']:+.2f} |"
         )
     lines += ["", "target: the chosen candidate's target speed (m/s), or its deceleration (m/s², "
               "kind brake); the learned plan's sub-scores say what it lost on where another was "
               "chosen, and in brackets the comfort quantity it broke (a multiple of NAVSIM's "
-              "bound)."]  # fmt: skip
+              "bound); driven: from this plan to the next (yaw rate left +)."]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
