@@ -247,11 +247,15 @@ class Candidates:
     path: PlanPath | None = None
 
 
+#: m/s^2: the hardest stop the leader's worst case may ask of the ego (the hardest brake run).
+_HARDEST_STOP = 6.0
+
+
 def _behind_braking_leader(s_cap, v_now, lead: Leaders, cfg, dt) -> np.ndarray:
     """[S] the plan's arc lengths, no farther at each waypoint than ``cfg.s0`` behind where the
     leader of now would be had it braked at ``cfg.lead_brake_decel`` to a stop from now (its
     worst case, as the responsibility-sensitive safety distance assumes), nor nearer than the
-    ego braking at 6 m/s^2 from now (the car cannot stop sooner)."""
+    ego braking at :data:`_HARDEST_STOP` from now."""
     gap, v_l = lead.nearest(0, np.array([FRONT]), v_now)
     if not np.isfinite(gap[0]):
         return s_cap
@@ -259,8 +263,8 @@ def _behind_braking_leader(s_cap, v_now, lead: Leaders, cfg, dt) -> np.ndarray:
     b = cfg.lead_brake_decel
     travel = np.where(t < v_l[0] / b, v_l[0] * t - 0.5 * b * t * t, v_l[0] ** 2 / (2 * b))
     limit = gap[0] + travel - cfg.s0
-    t_stop = v_now / 6.0
-    floor = np.where(t < t_stop, v_now * t - 3.0 * t * t, v_now * t_stop / 2)
+    t_stop = v_now / _HARDEST_STOP
+    floor = np.where(t < t_stop, v_now * t - 0.5 * _HARDEST_STOP * t * t, v_now * t_stop / 2)
     return np.maximum(np.minimum(s_cap, limit), np.minimum(floor, s_cap))
 
 
