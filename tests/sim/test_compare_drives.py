@@ -8,7 +8,12 @@ import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
-from renderworld.sim.closed_loop.compare import compare_runs, comparison_markdown, load_run
+from renderworld.sim.closed_loop.compare import (
+    average_runs,
+    compare_runs,
+    comparison_markdown,
+    load_run,
+)
 from tools.compare_drives import compare
 
 
@@ -103,3 +108,49 @@ def test_runs_of_other_worlds_are_refused_though_their_scene_names_match(runs):
     (b / "closed_loop.json").unlink()
     assert load_run(b, "world_model").attrs["worlds"] is None
     assert compare_runs(load_run(a, "world_model"), load_run(b, "world_model"))["scenes"] == 3
+
+
+def test_a_side_of_several_runs_is_compared_by_each_scenes_mean_and_lists_its_runs(
+    runs, tmp_path, capsys
+):
+    a, b = runs
+    wm, lb = "world_model", "lead_brake"
+    a2 = write_run(tmp_path / "a2", [  # another training of a: s1 and s3 drove otherwise
+        ("s1", "cut_in", wm, 0.6, False), ("s2", "cut_in", wm, 0.0, True),
+        ("s3", lb, wm, 0.3, True), ("s4", lb, wm, 0.5, False),
+    ])  # fmt: skip
+    side = average_runs([load_run(a, wm, "a"), load_run(a2, wm, "a")], "a")
+    assert side.loc["s1", "PDMS"] == pytest.approx(0.7) and side.loc["s3", "PDMS"] == 0.6
+    assert side.loc["s3", "at_fault_collision"] == 0.5 and side.attrs["runs"] == 2
+    cmp = compare_runs(side, load_run(b, wm, "b"))
+    o = cmp["overall"]
+    assert o["PDMS_a"] == pytest.approx((0.7 + 0.0 + 0.6) / 3)
+    assert o["at_fault_collision_a"] == 1.5  # per run: s2 in both, s3 in one of the two
+    assert "| 1.50 → 0 |" in comparison_markdown(cmp)
+    # The tool: each run's own mean over the paired scenes, and how far apart they lie.
+    cfg = OmegaConf.create({"a": [str(a), str(a2)], "b": str(b), "planner": wm,
+                            "planner_b": None, "top": 3, "out": None})  # fmt: skip
+    md = compare(cfg)["markdown"]
+    m1, m2 = (0.8 + 0.0 + 0.9) / 3, (0.6 + 0.0 + 0.3) / 3
+    assert f"a: 2 runs, PDMS {m1:.3f} / {m2:.3f} (at fault 1 / 2)" in md
+    assert f"lie up to {m1 - m2:.3f} apart" in md and "b: 1 run, PDMS" in md
+    assert str(a2) in capsys.readouterr().out
+    # One run a side: no such line, the tables as before.
+    one = compare(OmegaConf.create({**cfg, "a": str(a)}))["markdown"]
+    assert "runs of one side" not in one and one.startswith("| scenes |")
+
+
+def test_runs_of_one_side_must_drive_the_same_scenes(runs, tmp_path):
+    a, b = runs
+    wm = "world_model"
+    short = write_run(tmp_path / "short", [("s1", "cut_in", wm, 1.0, False)])
+    with pytest.raises(ValueError, match=r"a: run 2 and run 1 drove other scenes"):
+        average_runs([load_run(a, wm), load_run(short, wm)], "a")
+    clash = write_run(tmp_path / "clash", [
+        ("s1", "ped_crossing", wm, 1.0, False), ("s2", "cut_in", wm, 1.0, False),
+        ("s3", "lead_brake", wm, 1.0, False), ("s4", "lead_brake", wm, 1.0, False),
+    ])  # fmt: skip
+    with pytest.raises(ValueError, match="b: run 2 gives a scene another behaviour"):
+        average_runs([load_run(a, wm), load_run(clash, wm)], "b")
+    with pytest.raises(ValueError, match="a: no run given"):
+        average_runs([], "a")

@@ -7,6 +7,11 @@ the mean difference comes with its standard error over the scenes (the spread of
 differences: a knob whose difference is within about two of them has not shown anything), how
 many scenes went up and down, per behaviour, and the scenes that moved most.
 ``tools/compare_drives.py`` prints it.
+
+A side may hold several runs of the same scenes (:func:`average_runs`: e.g. the bundles of
+several trainings of one recipe): its scores are then each scene's mean over its runs, and
+:func:`run_spread` lists each run's own mean, since two trainings of one world-model recipe
+drive a set of scenes as far apart as many a change does (``docs/protocol.md``).
 """
 
 from __future__ import annotations
@@ -15,7 +20,15 @@ from pathlib import Path
 
 import pandas as pd
 
-__all__ = ["load_run", "compare_runs", "comparison_markdown", "PAIR_KEYS"]
+__all__ = [
+    "PAIR_KEYS",
+    "average_runs",
+    "compare_runs",
+    "comparison_markdown",
+    "load_run",
+    "run_spread",
+    "spread_markdown",
+]
 
 #: Scores compared, and the event counts beside them (scenes where it happened).
 PAIR_KEYS = ("PDMS", "EP", "TTC", "C", "NC", "DAC")
@@ -49,6 +62,48 @@ def load_run(path, planner: str, name: str = "a") -> pd.DataFrame:
         raise ValueError(f"{name}: planner {planner!r} drove a scene twice in {csv}")
     out = rows.set_index("scene")
     out.attrs["worlds"] = _worlds(csv.parent / "closed_loop.json")
+    return out
+
+
+def average_runs(runs: list[pd.DataFrame], name: str = "a") -> pd.DataFrame:
+    """One side's rows from several runs of the same scenes (:func:`load_run` each): every
+    score of :data:`PAIR_KEYS` and each event (then the fraction of runs it happened in) is the
+    scene's mean over the runs. One run is returned as it is.
+
+    Raises:
+        ValueError: naming ``name`` when there is no run, the runs drove other worlds or
+            other scenes, or a scene's behaviour differs between them.
+    """
+    if not runs:
+        raise ValueError(f"{name}: no run given")
+    if len(runs) == 1:
+        return runs[0]
+    first = runs[0]
+    for k, run in enumerate(runs[1:], start=2):
+        if run.attrs.get("worlds") != first.attrs.get("worlds"):
+            raise ValueError(f"{name}: run {k} drove other worlds than run 1")
+        if set(run.index) != set(first.index):
+            odd = sorted(set(run.index) ^ set(first.index))
+            raise ValueError(f"{name}: run {k} and run 1 drove other scenes ({odd[:3]} ...)")
+        if (run.loc[first.index, "behaviour"] != first["behaviour"]).any():
+            raise ValueError(f"{name}: run {k} gives a scene another behaviour than run 1")
+    keys = [*PAIR_KEYS, *_EVENTS]
+    stacked = pd.concat([r.loc[first.index, keys].astype(float) for r in runs])
+    out = stacked.groupby(level=0, sort=False).mean().loc[first.index]
+    out.insert(0, "behaviour", first["behaviour"])
+    out.attrs["worlds"] = first.attrs.get("worlds")
+    out.attrs["runs"] = len(runs)
+    return out
+
+
+def run_spread(runs: list[pd.DataFrame], scenes=None) -> list[dict]:
+    """Each run's mean PDMS and its scenes with an at-fault collision, over ``scenes`` (default
+    each run's own): how far apart the runs of one side lie."""
+    out = []
+    for run in runs:
+        rows = run if scenes is None else run.loc[list(scenes)]
+        out.append({"PDMS": float(rows["PDMS"].mean()),
+                    "at_fault": int(rows["at_fault_collision"].astype(bool).sum())})  # fmt: skip
     return out
 
 
@@ -108,9 +163,9 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, top: int = 5) -> dict:
         d = pb.loc[idx, "PDMS"] - pa.loc[idx, "PDMS"]
         out["PDMS_se"] = float(d.std(ddof=1) / len(d) ** 0.5) if len(d) > 1 else float("nan")
         out["up"], out["down"] = int((d > 1e-6).sum()), int((d < -1e-6).sum())
-        for k in _EVENTS:
-            out[f"{k}_a"] = int(pa.loc[idx, k].astype(bool).sum())
-            out[f"{k}_b"] = int(pb.loc[idx, k].astype(bool).sum())
+        for k in _EVENTS:  # scenes; on a side of several runs the mean count per run
+            out[f"{k}_a"] = _count(pa.loc[idx, k])
+            out[f"{k}_b"] = _count(pb.loc[idx, k])
         return out
 
     behaviours = {}
@@ -132,6 +187,19 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, top: int = 5) -> dict:
     }
 
 
+def _count(col: pd.Series) -> float:
+    """Scenes where an event happened: an int for one run's column of flags, the sum of the
+    fractions of runs for an averaged side."""
+    if col.dtype == bool or col.dtype == object:
+        return int(col.astype(bool).sum())
+    total = float(col.sum())
+    return int(total) if total == int(total) and col.isin([0.0, 1.0]).all() else total
+
+
+def _fmt(x) -> str:
+    return str(x) if isinstance(x, int) else f"{x:.2f}"
+
+
 def _se(se: float) -> str:
     return "" if se != se else f" ± {se:.3f}"  # NaN (one scene): none
 
@@ -150,8 +218,8 @@ def comparison_markdown(cmp: dict, label_a: str = "a", label_b: str = "b") -> st
             f"{s['PDMS_b'] - s['PDMS_a']:+.3f}{_se(s['PDMS_se'])} | {s['up']} / {s['down']} | "
             f"{s['EP_a']:.3f} → {s['EP_b']:.3f} | {s['TTC_a']:.3f} → {s['TTC_b']:.3f} | "
             f"{s['C_a']:.3f} → {s['C_b']:.3f} | "
-            f"{s['at_fault_collision_a']} → {s['at_fault_collision_b']} | "
-            f"{s['off_road_a']} → {s['off_road_b']} |"
+            f"{_fmt(s['at_fault_collision_a'])} → {_fmt(s['at_fault_collision_b'])} | "
+            f"{_fmt(s['off_road_a'])} → {_fmt(s['off_road_b'])} |"
         )
 
     lines = [head, row("all", cmp["overall"])]
@@ -163,3 +231,23 @@ def comparison_markdown(cmp: dict, label_a: str = "a", label_b: str = "b") -> st
         if cmp[key]:
             lines.append(f"\nOnly in {label} (not compared): {', '.join(cmp[key])}")
     return "\n".join(lines)
+
+
+def spread_markdown(spreads: dict[str, list[dict]]) -> str:
+    """Lines naming each side's runs (:func:`run_spread`) where a side holds more than one, and
+    the widest gap between two runs of one side; empty where every side is one run."""
+    if all(len(v) < 2 for v in spreads.values()):
+        return ""
+    parts, gap = [], 0.0
+    for label, runs in spreads.items():
+        pdms = [r["PDMS"] for r in runs]
+        gap = max(gap, max(pdms) - min(pdms))
+        means = " / ".join(f"{p:.3f}" for p in pdms)
+        faults = " / ".join(str(r["at_fault"]) for r in runs)
+        plural = "s" if len(runs) > 1 else ""
+        parts.append(f"{label}: {len(runs)} run{plural}, PDMS {means} (at fault {faults})")
+    return (
+        "; ".join(parts)
+        + f". The runs of one side lie up to {gap:.3f} apart: a difference between the sides "
+        "below that has not shown anything (each side's scores are its runs' mean per scene)."
+    )
