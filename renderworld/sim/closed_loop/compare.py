@@ -187,7 +187,7 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, top: int = 5) -> dict:
     }
 
 
-def _count(col: pd.Series) -> float:
+def _count(col: pd.Series) -> int | float:
     """Scenes where an event happened: an int for one run's column of flags, the sum of the
     fractions of runs for an averaged side."""
     if col.dtype == bool or col.dtype == object:
