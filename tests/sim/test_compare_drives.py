@@ -154,3 +154,13 @@ def test_runs_of_one_side_must_drive_the_same_scenes(runs, tmp_path):
         average_runs([load_run(a, wm), load_run(clash, wm)], "b")
     with pytest.raises(ValueError, match="a: no run given"):
         average_runs([], "a")
+    # The same scene names from worlds of another seed are other scenes.
+    other = write_run(tmp_path / "other", [
+        ("s1", "cut_in", wm, 1.0, False), ("s2", "cut_in", wm, 1.0, False),
+        ("s3", "lead_brake", wm, 1.0, False), ("s4", "lead_brake", wm, 1.0, False),
+    ])  # fmt: skip
+    for path, seed in ((a, 1002), (other, 7)):
+        settings = {"preset": "interactions", "seed": seed}
+        (path / "closed_loop.json").write_text(json.dumps({"settings": settings}))
+    with pytest.raises(ValueError, match="a: run 2 drove other worlds than run 1"):
+        average_runs([load_run(a, wm), load_run(other, wm)], "a")

@@ -189,11 +189,10 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, top: int = 5) -> dict:
 
 def _count(col: pd.Series) -> int | float:
     """Scenes where an event happened: an int for one run's column of flags, the sum of the
-    fractions of runs for an averaged side."""
+    fractions of runs (a float) for an averaged side."""
     if col.dtype == bool or col.dtype == object:
         return int(col.astype(bool).sum())
-    total = float(col.sum())
-    return int(total) if total == int(total) and col.isin([0.0, 1.0]).all() else total
+    return float(col.sum())
 
 
 def _fmt(x) -> str:
