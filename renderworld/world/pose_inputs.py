@@ -18,6 +18,7 @@ __all__ = [
     "invert_poses",
     "kinematic_features",
     "motion_channels",
+    "steady_history",
 ]
 
 
@@ -151,3 +152,35 @@ def kinematic_features(history_poses: torch.Tensor) -> torch.Tensor:
     dyaw = torch.remainder(dyaw + 180.0, 360.0) - 180.0
     parts = [step / 1.0, torch.diff(step, dim=1) / 0.01, dyaw / 0.1, torch.diff(dyaw, dim=1) / 0.1]
     return torch.asinh(torch.cat(parts, dim=1)) / 3.0
+
+
+def steady_history(history_poses: torch.Tensor) -> torch.Tensor:
+    """The history the ego would have had driving its last step all along: every earlier step
+    repeats the last displacement and heading change (constant speed and turn rate), so the
+    current pose, speed and turn rate stay and any trend before them (a slowing, a turn
+    starting) is gone. The pose head's past-motion dropout (ChauffeurNet) trains on it.
+
+    Args:
+        history_poses: [B, H, 3] (x, y, yaw) of frames t-H+1..t in the current ego frame (the
+            last row the origin), H >= 2.
+
+    Returns:
+        [B, H, 3], same dtype: row H-1 - k is ``-sum_{j<k} R(-j w) d``, yaw ``-k w``, with
+        ``d`` the last displacement and ``w`` the last heading change.
+    """
+    if history_poses.dim() != 3 or history_poses.shape[-1] != 3 or history_poses.shape[1] < 2:
+        raise ValueError(f"history_poses: expected [B, H>=2, 3], got {tuple(history_poses.shape)}")
+    q = history_poses.double()
+    h = q.shape[1]
+    d = q[:, -1, :2] - q[:, -2, :2]  # [B, 2]
+    w = torch.remainder(q[:, -1, 2] - q[:, -2, 2] + torch.pi, 2 * torch.pi) - torch.pi
+    j = torch.arange(h - 1, dtype=torch.float64, device=q.device)  # steps back: 0 .. H-2
+    ang = -w[:, None] * j  # [B, H-1]: heading of the step k+1 back, relative to the last one
+    c, s = torch.cos(ang), torch.sin(ang)
+    step_x = c * d[:, None, 0] - s * d[:, None, 1]
+    step_y = s * d[:, None, 0] + c * d[:, None, 1]
+    back = -torch.stack([step_x.cumsum(1), step_y.cumsum(1)], -1)  # [B, H-1, 2]: t-1, t-2, ...
+    yaw = -w[:, None] * (j + 1.0)
+    past = torch.cat([back, yaw[..., None]], -1).flip(1)  # t-H+1 .. t-1
+    out = torch.cat([past, torch.zeros_like(q[:, :1])], 1)
+    return out.to(history_poses.dtype)

@@ -129,6 +129,35 @@ def test_the_pose_warm_up_fits_the_pose_head_alone(wm_overrides, tmp_path):
     assert any(not torch.equal(v, model.pose.state_dict()[k]) for k, v in head.items())
 
 
+def test_past_motion_dropout_shows_the_pose_head_steady_histories_in_training_only(
+    wm_overrides, tmp_path
+):
+    from renderworld.training.stages.world_model.pose_warp import pose_terms
+    from renderworld.world.pose_inputs import steady_history
+
+    over = [*wm_overrides, *POSE, f"run_dir={tmp_path}"]
+    stage = WorldModelStage(compose_cfg(over))
+    train_set, _ = stage.build_datasets(compose_cfg(over))
+    batch = next(iter(DataLoader(train_set, batch_size=2)))
+    torch.manual_seed(0)
+    model = stage.build_model(compose_cfg(over)).train()
+    with torch.no_grad():  # a head that reads the history's trend
+        model.pose.mlp[-1].weight.normal_(0.0, 0.1)
+    steady = dict(batch, history_poses=steady_history(batch["history_poses"].double()))
+    assert not torch.allclose(steady["history_poses"].float(), batch["history_poses"].float())
+    plain, on_steady = pose_terms(stage, model, batch), pose_terms(stage, model, steady)
+    drop = WorldModelStage(compose_cfg([*over, "stage.pose_history_dropout=1.0"]))
+    drop.build_datasets(compose_cfg([*over, "stage.pose_history_dropout=1.0"]))
+    torch.testing.assert_close(pose_terms(drop, model, batch)["pose"], on_steady["pose"])
+    assert not torch.allclose(plain["pose"], on_steady["pose"])
+    model.eval()  # evaluation and planning read the history as it is
+    torch.testing.assert_close(
+        pose_terms(drop, model, batch)["pose"], pose_terms(stage, model, batch)["pose"]
+    )
+    with pytest.raises(ValueError, match="stage.pose_history_dropout: expected a fraction"):
+        WorldModelStage(compose_cfg([*over, "stage.pose_history_dropout=1.5"]))
+
+
 def test_each_pose_head_of_an_ensemble_trains_on_its_own_loss(wm_overrides, tmp_path):
     from renderworld.training.stages.world_model.pose_warp import pose_terms
     from renderworld.world.pose import PoseHead

@@ -20,6 +20,7 @@ from renderworld.world.pose import (
     motion_channels,
     pose_loss,
 )
+from renderworld.world.pose_inputs import steady_history
 
 GRID = GridSpec("test", (-4.0, -4.0, 0.0), (4.0, 4.0, 2.0), (8, 8, 2))
 
@@ -178,6 +179,31 @@ def test_kinematic_features_resolve_small_changes_and_mirror():
     wrap[0, 0, 2], wrap[0, 1, 2] = math.radians(179.0), math.radians(-179.0)
     wrap[0, 1, 0] = 1.0
     assert kinematic_features(wrap)[0, 1].item() == pytest.approx(math.asinh(20.0) / 3, rel=1e-4)
+
+
+def test_steady_history_keeps_the_last_step_and_drops_the_trend():
+    h = 5
+    hist = torch.zeros(2, h, 3, dtype=torch.float64)
+    hist[0, :, 0] = torch.tensor([-10.5, -7.5, -4.75, -2.25, 0.0])  # braking: 3 ... 2.25 m/step
+    # A steady left turn: each step 2 m along a heading 0.1 rad less than the next one's.
+    w, yaw, pts = 0.1, 0.0, [torch.zeros(2, dtype=torch.float64)]
+    for _ in range(h - 1):
+        yaw -= w
+        pts.append(pts[-1] - 2.0 * torch.tensor([math.cos(yaw + w), math.sin(yaw + w)]))
+    hist[1, :, :2] = torch.stack(pts[::-1])
+    hist[1, :, 2] = -w * torch.arange(h - 1, -1, -1, dtype=torch.float64)
+    out = steady_history(hist)
+    # The turn at constant rate and speed is steady already: it comes back unchanged.
+    torch.testing.assert_close(out[1], hist[1])
+    # The braking one keeps its current pose and last step (2.25 m), every earlier step the same.
+    torch.testing.assert_close(out[0, -2:], hist[0, -2:])
+    torch.testing.assert_close(out[0, :, 0], torch.tensor([-9.0, -6.75, -4.5, -2.25, 0.0]).double())
+    f = kinematic_features(out.float())
+    n = h - 1
+    assert f[0, n : 2 * n - 1].abs().max() == 0  # no speed change left
+    assert f[:, 3 * n - 1 :].abs().max() < 1e-4  # nor a change of turn rate
+    with pytest.raises(ValueError, match=r"history_poses: expected \[B, H>=2, 3\]"):
+        steady_history(torch.zeros(1, 1, 3))
 
 
 def test_pose_head_with_kinematics_starts_at_its_anchor_and_reads_them():

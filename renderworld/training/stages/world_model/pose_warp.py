@@ -31,6 +31,7 @@ from renderworld.training.stages.world_model.report import CHECKED, CHECKED_HIST
 from renderworld.training.stages.world_model.windows import frame_keys
 from renderworld.world.forecast import movers_of, pose_warp_forecast, warp_current
 from renderworld.world.pose import align_history, pose_loss
+from renderworld.world.pose_inputs import steady_history
 
 if TYPE_CHECKING:
     from renderworld.constants import GridSpec
@@ -199,6 +200,13 @@ def pose_terms(stage: PoseWarpStage, model: Any, batch: dict, inputs: str = "occ
     yaw_w = st.pose_yaw_weight
     steps = pose_step_weights(st.pose_step_weighting, st.future)
     history = occ[:, : st.history]
+    if model.training and st.pose_history_dropout > 0:
+        # Past-motion dropout (ChauffeurNet): some windows show the head a history at the last
+        # step's speed and turn rate, so a trend alone (its own slowing, in closed loop) does
+        # not carry into the plan unless the scene gives a reason.
+        drop = torch.rand(hist_poses.shape[0], device=hist_poses.device) < st.pose_history_dropout
+        steady = steady_history(hist_poses)
+        hist_poses = torch.where(drop[:, None, None], steady, hist_poses)
 
     def loss(preds: torch.Tensor, gt: torch.Tensor) -> dict:
         # Each pose head on its own loss: ``pose`` summed over heads (each gets the gradient

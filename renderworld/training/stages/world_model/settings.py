@@ -74,6 +74,7 @@ class StageSettings:
     pose_lr_scale: float = 1.0
     pose_warmup_steps: int = 0
     pose_joint_lr_scale: float | None = None
+    pose_history_dropout: float = 0.0
     mover_fit_steps: int = 0
     mover_lr: float = 2e-3
     mover_batch: int = 256
@@ -161,6 +162,11 @@ def stage_settings(cfg: Any) -> StageSettings:
                 "stage.pose_joint_lr_scale=0 freezes the pose head in the joint training: it "
                 "needs stage.pose_warmup_steps > 0 to be fitted at all"
             )
+    dropout = _number(s, "pose_history_dropout", 0.0)
+    if dropout > 1:
+        raise ValueError(
+            f"stage.pose_history_dropout: expected a fraction in [0, 1], got {dropout!r}"
+        )
     fit = s.get("mover_fit_steps") or 0
     if not isinstance(fit, int) or isinstance(fit, bool) or fit < 0:
         raise ValueError(f"stage.mover_fit_steps: expected an int >= 0, got {fit!r}")
@@ -201,6 +207,7 @@ def stage_settings(cfg: Any) -> StageSettings:
         pose_lr_scale=lr_scale,
         pose_warmup_steps=warmup,
         pose_joint_lr_scale=joint,
+        pose_history_dropout=dropout,
         mover_fit_steps=fit,
         mover_lr=mover_lr,
         mover_batch=batch,
