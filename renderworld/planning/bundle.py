@@ -11,7 +11,7 @@ Format (``schema_version`` 2), a plain dict saved with ``torch.save`` and read w
                       "config": dict (WorldModelConfig.to_dict()), "state_dict": {...},
                       "options": {} (tokens) | {"anchors": str, "movers": str,
                                   "kinematics": bool, "motion_frames": int, "agents": int,
-                                  "pose_heads": int, "bev_pool": int,
+                                  "pose_heads": int, "bev_pool": int, "leader": bool,
                                   "grid": {"name": str,
                                   "range_min": [3], "range_max": [3], "shape": [3]}}},
     }
@@ -20,8 +20,9 @@ Format (``schema_version`` 2), a plain dict saved with ``torch.save`` and read w
 :class:`renderworld.world.pose.PoseWarpWorldModel` (its pose head's anchors, how its forecast
 moves other road users and the occupancy grid its warps use are the options). Bundles of
 ``schema_version`` 1 (token world models only, no ``kind`` / ``options``) still load; pose-warp
-options without ``movers``, ``kinematics``, ``motion_frames``, ``agents``, ``pose_heads`` or
-``bev_pool`` (bundles written before they existed) load as ``"static"``, false, 0, 0, 1 and 4.
+options without ``movers``, ``kinematics``, ``motion_frames``, ``agents``, ``pose_heads``,
+``bev_pool`` or ``leader`` (bundles written before they existed) load as ``"static"``, false, 0,
+0, 1, 4 and false.
 
 The tokenizer is rebuilt through a registry (``register_tokenizer``), never by importing a
 class named in the file. Writes are atomic (temp file in the same folder, fsync, rename);
@@ -188,6 +189,7 @@ def _world_model_options(world_model, tokenizer, grid: GridSpec | None) -> tuple
             "agents": world_model.pose.agents,
             "pose_heads": len(getattr(world_model.pose, "members", (world_model.pose,))),
             "bev_pool": world_model.pose.bev_pool,
+            "leader": world_model.pose.leader,
         }
         return "pose_warp", {**options, "grid": _grid_dict(grid)}
     if isinstance(world_model, WorldModel):
@@ -331,9 +333,9 @@ def load_planner(
     if wm_kind == "pose_warp":
         if isinstance(options, dict):  # bundles written before an option existed
             options = {"movers": "static", "kinematics": False, "motion_frames": 0, "agents": 0,
-                       "pose_heads": 1, "bev_pool": 4, **options}  # fmt: skip
+                       "pose_heads": 1, "bev_pool": 4, "leader": False, **options}  # fmt: skip
         keys = {"anchors", "movers", "kinematics", "motion_frames", "agents", "pose_heads",
-                "bev_pool", "grid"}  # fmt: skip
+                "bev_pool", "leader", "grid"}  # fmt: skip
         _require_keys(options, keys, where)
         if options["anchors"] not in ANCHORS:
             raise ValueError(
@@ -359,6 +361,8 @@ def load_planner(
         pool = options["bev_pool"]
         if not isinstance(pool, int) or isinstance(pool, bool) or pool < 1:
             raise ValueError(f"{where}: bev_pool: expected an int >= 1, got {pool!r}")
+        if not isinstance(options["leader"], bool):
+            raise ValueError(f"{where}: leader: expected true or false, got {options['leader']!r}")
         grid = _grid_of(options["grid"], f"{where}: grid")
     else:
         _require_keys(options, set(), where)
@@ -395,6 +399,7 @@ def load_planner(
                 agents=options["agents"],
                 pose_heads=options["pose_heads"],
                 bev_pool=options["bev_pool"],
+                leader=options["leader"],
             )
         else:
             world_model = WorldModel(config)

@@ -24,7 +24,12 @@ from renderworld.world.config import WorldModelConfig
 from renderworld.world.model import WorldModel
 from renderworld.world.mover_head import MoverHead
 from renderworld.world.movers import MOVERS
-from renderworld.world.pose_agents import AGENT_FEATURES, agent_features
+from renderworld.world.pose_agents import (
+    AGENT_FEATURES,
+    LEADER_FEATURES,
+    agent_features,
+    leader_features,
+)
 from renderworld.world.pose_ensemble import PoseEnsemble
 from renderworld.world.pose_inputs import (
     BEV_GROUPS,
@@ -34,6 +39,7 @@ from renderworld.world.pose_inputs import (
     kinematic_features,
     motion_channels,
 )
+from renderworld.world.pose_retime import LeaderRetiming, retime_along_path
 
 __all__ = [
     "ANCHORS",
@@ -78,6 +84,11 @@ class PoseHead(nn.Module):
         agents: the head also reads :func:`~renderworld.world.pose_agents.agent_features` of
             this many tracked movers (0: none): where the nearest road users are and how fast
             they move.
+        leader: a :class:`~renderworld.world.pose_retime.LeaderRetiming` also reads
+            :func:`~renderworld.world.pose_agents.leader_features` (after the agents' rows:
+            the road user in its corridor ahead and the first one foreseen to enter it, what a
+            driver brakes for) and retimes the plan along its own path: the leader changes how
+            far the ego gets, not where the path goes.
         bev_pool: the bird's-eye features are pooled to ``bev_pool x bev_pool`` cells before
             the MLP (4: 20 m cells on the 80 m grid; finer says better where a junction
             begins).
@@ -97,6 +108,7 @@ class PoseHead(nn.Module):
         motion_frames: int = 0,
         agents: int = 0,
         bev_pool: int = 4,
+        leader: bool = False,
     ):
         super().__init__()
         if history < 2 or steps < 1:
@@ -111,6 +123,9 @@ class PoseHead(nn.Module):
         if not isinstance(agents, int) or isinstance(agents, bool) or agents < 0:
             raise ValueError(f"agents: expected an int >= 0, got {agents!r}")
         self.agents = agents
+        if not isinstance(leader, bool):
+            raise ValueError(f"leader: expected true or false, got {leader!r}")
+        self.leader = leader
         if not isinstance(bev_pool, int) or isinstance(bev_pool, bool) or bev_pool < 1:
             raise ValueError(f"bev_pool: expected an int >= 1, got {bev_pool!r}")
         self.bev_pool = bev_pool
@@ -132,7 +147,13 @@ class PoseHead(nn.Module):
         )  # fmt: skip
         nn.init.zeros_(self.mlp[-1].weight)
         nn.init.zeros_(self.mlp[-1].bias)
+        self.retime = LeaderRetiming(history, steps, LEADER_FEATURES) if leader else None
         self.register_buffer("scale", torch.tensor(self.SCALE), persistent=False)
+
+    @property
+    def road_user_features(self) -> int:
+        """Width of the ``agents`` input: the agents' rows, then the leader's."""
+        return self.agents * AGENT_FEATURES + (LEADER_FEATURES if self.leader else 0)
 
     def forward(
         self,
@@ -148,8 +169,8 @@ class PoseHead(nn.Module):
             command: [B] int64 index into ``COMMANDS`` (the current command).
             bev: [B, C, X, Y] :func:`bev_channels` of the current frame (then, with
                 ``motion_frames``, :func:`motion_channels`).
-            agents: [B, agents * AGENT_FEATURES] :func:`agent_features` when the head reads
-                agents, else None.
+            agents: [B, agents * AGENT_FEATURES (+ LEADER_FEATURES)] :func:`agent_features`
+                then :func:`leader_features` when the head reads them, else None.
 
         Returns:
             (poses [B, S, 3] of the command's mode, modes [B, len(COMMANDS), S, 3]).
@@ -171,14 +192,15 @@ class PoseHead(nn.Module):
         parts = [feats, onehot, self.bev(bev.float())]
         if self.kinematics:
             parts.append(kinematic_features(hp))
-        if self.agents:
-            want = (b, self.agents * AGENT_FEATURES)
+        if self.road_user_features:
+            want = (b, self.road_user_features)
             if agents is None or tuple(agents.shape) != want:
                 raise ValueError(
-                    f"agents: the head reads {self.agents} agents; expected {list(want)}, got "
+                    f"agents: the head reads {self.agents} agents and leader={self.leader}; "
+                    f"expected {list(want)}, got "
                     f"{None if agents is None else tuple(agents.shape)}"
                 )
-            parts.append(agents.float())
+            parts.append(agents[:, : self.agents * AGENT_FEATURES].float())
         x = torch.cat(parts, dim=1)
         out = self.mlp(x).view(b, len(COMMANDS), self.steps, -1)
         raw = out[..., :3] * self.scale
@@ -192,6 +214,9 @@ class PoseHead(nn.Module):
             w = torch.sigmoid(out[..., 3:])  # weight of CTR; 0.5 at initialisation
             prior = w * prior + (1.0 - w) * cv
         modes = prior + raw
+        if self.retime is not None:
+            factors = self.retime(feats, onehot, agents[:, self.agents * AGENT_FEATURES :])
+            modes = retime_along_path(modes, factors)
         idx = command.view(b, 1, 1, 1).expand(b, 1, self.steps, 3)
         return modes.gather(1, idx).squeeze(1), modes
 
@@ -254,6 +279,7 @@ class PoseWarpWorldModel(nn.Module):
         motion_frames: the pose head also reads :func:`motion_channels` of this many frames.
         agents: the pose head also reads :func:`agent_features` of this many tracked movers.
         bev_pool: the pose head's bird's-eye readout cells per side (:class:`PoseHead`).
+        leader: the pose head also reads :func:`leader_features`.
         pose_heads: how many pose heads (more than one: a
             :class:`~renderworld.world.pose_ensemble.PoseEnsemble`, each member initialised
             from its own seed, the global RNG left as one head leaves it).
@@ -270,6 +296,7 @@ class PoseWarpWorldModel(nn.Module):
         agents: int = 0,
         pose_heads: int = 1,
         bev_pool: int = 4,
+        leader: bool = False,
     ):
         super().__init__()
         if not isinstance(config, WorldModelConfig):
@@ -287,7 +314,7 @@ class PoseWarpWorldModel(nn.Module):
             return PoseHead(
                 config.history_frames, config.future_frames, anchors=anchors,
                 kinematics=kinematics, motion_frames=motion_frames, agents=agents,
-                bev_pool=bev_pool,
+                bev_pool=bev_pool, leader=leader,
             )  # fmt: skip
 
         self.pose: PoseHead | PoseEnsemble = head()
@@ -321,7 +348,7 @@ class PoseWarpWorldModel(nn.Module):
                 current frame.
             history: [B, H, X, Y, Z] labels of the history frames (the last is ``current``) and
                 grid: their grid; needed when the pose head reads ``motion_frames`` or
-                ``agents``.
+                ``agents`` or ``leader``.
             members: each pose head's own prediction instead, [K, B, S, 3] and
                 [K, B, C, S, 3] (K = 1 for a single head), for training each on its loss.
 
@@ -340,13 +367,17 @@ class PoseWarpWorldModel(nn.Module):
             motion = motion_channels(history, history_poses, grid, frames)
             bev = torch.cat([bev, motion.to(bev.device)], dim=1)
         agents = None
-        if self.pose.agents:
+        if self.pose.agents or self.pose.leader:
             if history is None or grid is None:
                 raise ValueError(
-                    f"history: the pose head reads agents={self.pose.agents}; pass the history "
-                    "frames and their grid"
+                    f"history: the pose head reads agents={self.pose.agents}, "
+                    f"leader={self.pose.leader}; pass the history frames and their grid"
                 )
-            agents = agent_features(history, history_poses, grid, self.pose.agents)
+            parts = [agent_features(history, history_poses, grid, self.pose.agents)] if (
+                self.pose.agents) else []  # fmt: skip
+            if self.pose.leader:
+                parts.append(leader_features(history, history_poses, grid))
+            agents = torch.cat(parts, dim=1)
         if not members:
             return self.pose(history_poses, command, bev, agents)
         if isinstance(self.pose, PoseEnsemble):

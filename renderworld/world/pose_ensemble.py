@@ -17,7 +17,16 @@ from torch import nn
 __all__ = ["PoseEnsemble"]
 
 #: What an ensemble takes over from its first member (all members must agree).
-SHARED = ("history", "steps", "anchors", "kinematics", "motion_frames", "agents", "bev_pool")
+SHARED = (
+    "history",
+    "steps",
+    "anchors",
+    "kinematics",
+    "motion_frames",
+    "agents",
+    "bev_pool",
+    "leader",
+)
 
 
 class PoseEnsemble(nn.Module):

@@ -535,3 +535,15 @@ def test_bundles_keep_a_finer_bird_s_eye_readout(tmp_path):
     bad = _tampered(tmp_path, lambda d: d["world_model"]["options"].update(bev_pool=0))
     with pytest.raises(ValueError, match="bev_pool: expected an int >= 1"):
         load_planner(bad)
+
+
+def test_bundles_keep_a_pose_head_that_reads_its_leader(tmp_path):
+    path, loaded, _ = _round_trip(tmp_path, "l.pt", leader=True)
+    assert torch.load(path, weights_only=True)["world_model"]["options"]["leader"] is True
+    assert loaded.world_model.pose.leader
+    # Written before the option existed: a head without it.
+    old = _tampered(tmp_path, lambda d: d["world_model"]["options"].pop("leader"))
+    assert not load_planner(old).world_model.pose.leader
+    bad = _tampered(tmp_path, lambda d: d["world_model"]["options"].update(leader="yes"))
+    with pytest.raises(ValueError, match="leader: expected true or false"):
+        load_planner(bad)

@@ -135,3 +135,94 @@ def test_pose_ensemble_is_the_mean_of_heads_from_their_own_seeds():
         PoseEnsemble([PoseHead(5, 2), PoseHead(5, 2, kinematics=True)])
     with pytest.raises(ValueError, match="pose_heads: expected an int >= 1"):
         PoseWarpWorldModel(cfg, pose_heads=0)
+
+
+def test_corridor_coords_follow_the_arc():
+    from renderworld.world.pose_agents import corridor_coords
+
+    pts = np.array([[10.0, 1.0], [-3.0, 0.5]])
+    s, lat = corridor_coords(pts, 0.0)
+    np.testing.assert_allclose(np.stack([s, lat], 1), pts)
+    for kappa in (0.05, -0.05):  # a 20 m radius, left and right
+        r, phi = 1.0 / kappa, 0.6
+        on = np.array([abs(r) * np.sin(phi), r * (1 - np.cos(phi))])  # on the arc, 12 m along
+        head = np.sign(kappa) * phi
+        inward = on + 1.5 * np.array([-np.sin(head), np.cos(head)]) * np.sign(kappa)
+        s, lat = corridor_coords(np.stack([on, inward]), kappa)
+        np.testing.assert_allclose(s[0], abs(r) * phi, atol=1e-9)
+        np.testing.assert_allclose(lat, [0.0, 1.5 * np.sign(kappa)], atol=1e-9)
+
+
+def _steady_history(speed=8.0, h=5):
+    t = np.arange(-(h - 1), 1) * KEYFRAME_DT
+    return np.stack([speed * t, np.zeros(h), np.zeros(h)], 1)
+
+
+def test_leader_row_names_the_car_ahead_in_the_lane_and_its_braking():
+    from renderworld.world.pose_agents import LEADER_FEATURES, leader_row
+
+    hist = _steady_history()
+    beside = _track(CAR, (6.0, 3.5), (8.0, 0.0))  # the next lane: not a leader
+    far = _track(CAR, (30.0, 0.3), (8.0, 0.0))
+    near = _track(CAR, (14.0, -0.4), (5.0, 0.0), brake=3.0)
+    row = leader_row([beside, far, near], hist)
+    assert row.shape == (LEADER_FEATURES,) and row.dtype == np.float32
+    assert row[0] == 1.0 and row[1] == pytest.approx(14.0 / 20.0)
+    assert row[3] < row[2] - 0.05  # the last second slower than the whole history: braking
+    assert row[4] == pytest.approx(-0.2) and row[5] == 0.0
+    assert not row[6:].any()  # nobody enters: the car beside keeps its lane
+    parked = leader_row([_track(CAR, (9.0, 0.0), (0.0, 0.0))], hist)
+    assert parked[0] == 1.0 and parked[2] == parked[3] == 0.0  # a parked car in the lane leads
+    assert not leader_row([], hist).any()
+
+
+def test_leader_row_foresees_a_pedestrian_stepping_in_and_a_car_cutting_in():
+    from renderworld.world.pose_agents import leader_row
+
+    hist = _steady_history()
+    ped = _track(PED, (12.0, -5.0), (0.0, 1.3))  # 3 m from the corridor's edge at 1.3 m/s
+    row = leader_row([ped], hist)
+    assert row[0] == 0.0 and row[6] == 1.0 and row[9] == 1.0
+    assert row[7] == pytest.approx(2.5 / 3.0) and row[8] == pytest.approx(12.0 / 20.0)
+    away = leader_row([_track(PED, (12.0, -5.0), (0.0, -1.3))], hist)
+    assert not away.any()  # walking away from the road
+    cut = leader_row([_track(CAR, (10.0, 3.4), (6.0, -1.2))], hist)
+    assert cut[6] == 1.0 and cut[7] == pytest.approx(1.25 / 3.0) and cut[9] == 0.0  # 1.4 m
+    # The earliest entry wins; a turning ego's corridor bends with it.
+    both = leader_row([ped, _track(CAR, (10.0, 3.4), (6.0, -1.2))], hist)
+    np.testing.assert_allclose(both[6:], cut[6:])
+    turn = hist.copy()
+    turn[-2] = (-4.0 * np.cos(0.05), -4.0 * np.sin(0.05), -0.1)  # turning left: 0.025 1/m
+    inner = _track(CAR, (15.0, 2.8), (0.0, 0.0))  # where the left curve goes, 2.8 m aside
+    assert leader_row([inner], hist)[0] == 0.0 and leader_row([inner], turn)[0] == 1.0
+
+
+def test_leader_features_track_the_scene_mirror_with_it_and_feed_the_head():
+    from renderworld.world.pose_agents import LEADER_FEATURES, leader_features
+
+    occ, poses = _scene(mover=(16, 10), mover_step=(1, 0), ego_step=0)
+    hist = torch.from_numpy(occ)[None]
+    hp = torch.from_numpy(poses)[None].float()
+    f = leader_features(hist, hp, GRID)
+    m = leader_features(hist.flip(3), hp * torch.tensor([1.0, -1.0, -1.0]), GRID)
+    assert f.shape == (1, LEADER_FEATURES) and f.dtype == torch.float32
+    sign = torch.ones(LEADER_FEATURES)
+    sign[4] = -1.0  # the lateral offset changes side, nothing else
+    torch.testing.assert_close(m[0], f[0] * sign)
+    with pytest.raises(ValueError, match="history/history_poses: expected"):
+        leader_features(hist, hp[:, :2], GRID)
+    cfg = WorldModelConfig(
+        codebook_sizes=(8,), token_grid=(4, 4), embed_dim=16, num_heads=2, num_scales=1,
+        layers_per_scale=(1,), history_frames=5, future_frames=2,
+    )  # fmt: skip
+    torch.manual_seed(0)
+    model = PoseWarpWorldModel(cfg, agents=1, leader=True)
+    assert model.pose.road_user_features == AGENT_FEATURES + LEADER_FEATURES
+    with torch.no_grad():
+        model.pose.mlp[-1].weight.normal_()
+    a, _ = model.predict_poses(hp, torch.tensor([0]), hist[:, -1], hist, GRID)
+    assert a.shape == (1, 2, 3) and torch.isfinite(a).all()
+    with pytest.raises(ValueError, match="history: the pose head reads agents=1, leader=True"):
+        model.predict_poses(hp, torch.tensor([0]), hist[:, -1])
+    with pytest.raises(ValueError, match="leader: expected true or false"):
+        PoseHead(history=5, steps=2, leader=1)

@@ -69,6 +69,7 @@ class StageSettings:
     pose_kinematics: bool = False
     pose_motion_frames: int = 0
     pose_agents: int = 0
+    pose_leader: bool = False
     pose_heads: int = 1
     pose_bev_pool: int = 4
     pose_lr_scale: float = 1.0
@@ -140,6 +141,9 @@ def stage_settings(cfg: Any) -> StageSettings:
     agents = s.get("pose_agents") or 0
     if not isinstance(agents, int) or isinstance(agents, bool) or agents < 0:
         raise ValueError(f"stage.pose_agents: expected an int >= 0, got {agents!r}")
+    leader = s.get("pose_leader", False)
+    if not isinstance(leader, bool):
+        raise ValueError(f"stage.pose_leader: expected true or false, got {leader!r}")
     heads = s.get("pose_heads", 1)
     heads = 1 if heads is None else heads
     if not isinstance(heads, int) or isinstance(heads, bool) or heads < 1:
@@ -202,6 +206,7 @@ def stage_settings(cfg: Any) -> StageSettings:
         pose_kinematics=kinematics,
         pose_motion_frames=motion,
         pose_agents=agents,
+        pose_leader=leader,
         pose_heads=heads,
         pose_bev_pool=bev_pool,
         pose_lr_scale=lr_scale,
@@ -270,7 +275,8 @@ def build_world_model(
 
     ``cfg``: the run config whose ``stage.pose_anchors`` (default ``"ctr"``),
     ``stage.pose_kinematics`` (default false), ``stage.pose_motion_frames`` (default 0),
-    ``stage.pose_agents`` (default 0) and ``stage.pose_heads`` (default 1) the pose head uses
+    ``stage.pose_agents`` (default 0), ``stage.pose_leader`` (default false) and
+    ``stage.pose_heads`` (default 1) the pose head uses
     and whose ``stage.movers`` (default ``"static"``) the forecast applies (validated by
     :func:`stage_settings`).
     """
@@ -286,6 +292,7 @@ def build_world_model(
         kinematics=st.pose_kinematics,
         motion_frames=st.pose_motion_frames,
         agents=st.pose_agents,
+        leader=st.pose_leader,
         pose_heads=st.pose_heads,
         bev_pool=st.pose_bev_pool,
     )
