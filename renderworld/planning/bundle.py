@@ -12,6 +12,7 @@ Format (``schema_version`` 2), a plain dict saved with ``torch.save`` and read w
                       "options": {} (tokens) | {"anchors": str, "movers": str,
                                   "kinematics": bool, "motion_frames": int, "agents": int,
                                   "pose_heads": int, "bev_pool": int, "leader": bool,
+                                  "leader_stop": bool,
                                   "grid": {"name": str,
                                   "range_min": [3], "range_max": [3], "shape": [3]}}},
     }
@@ -21,8 +22,8 @@ Format (``schema_version`` 2), a plain dict saved with ``torch.save`` and read w
 moves other road users and the occupancy grid its warps use are the options). Bundles of
 ``schema_version`` 1 (token world models only, no ``kind`` / ``options``) still load; pose-warp
 options without ``movers``, ``kinematics``, ``motion_frames``, ``agents``, ``pose_heads``,
-``bev_pool`` or ``leader`` (bundles written before they existed) load as ``"static"``, false, 0,
-0, 1, 4 and false.
+``bev_pool``, ``leader`` or ``leader_stop`` (bundles written before they existed) load as
+``"static"``, false, 0, 0, 1, 4, false and false.
 
 The tokenizer is rebuilt through a registry (``register_tokenizer``), never by importing a
 class named in the file. Writes are atomic (temp file in the same folder, fsync, rename);
@@ -190,6 +191,7 @@ def _world_model_options(world_model, tokenizer, grid: GridSpec | None) -> tuple
             "pose_heads": len(getattr(world_model.pose, "members", (world_model.pose,))),
             "bev_pool": world_model.pose.bev_pool,
             "leader": world_model.pose.leader,
+            "leader_stop": world_model.leader_stop,
         }
         return "pose_warp", {**options, "grid": _grid_dict(grid)}
     if isinstance(world_model, WorldModel):
@@ -333,9 +335,10 @@ def load_planner(
     if wm_kind == "pose_warp":
         if isinstance(options, dict):  # bundles written before an option existed
             options = {"movers": "static", "kinematics": False, "motion_frames": 0, "agents": 0,
-                       "pose_heads": 1, "bev_pool": 4, "leader": False, **options}  # fmt: skip
+                       "pose_heads": 1, "bev_pool": 4, "leader": False, "leader_stop": False,
+                       **options}  # fmt: skip
         keys = {"anchors", "movers", "kinematics", "motion_frames", "agents", "pose_heads",
-                "bev_pool", "leader", "grid"}  # fmt: skip
+                "bev_pool", "leader", "leader_stop", "grid"}  # fmt: skip
         _require_keys(options, keys, where)
         if options["anchors"] not in ANCHORS:
             raise ValueError(
@@ -361,8 +364,9 @@ def load_planner(
         pool = options["bev_pool"]
         if not isinstance(pool, int) or isinstance(pool, bool) or pool < 1:
             raise ValueError(f"{where}: bev_pool: expected an int >= 1, got {pool!r}")
-        if not isinstance(options["leader"], bool):
-            raise ValueError(f"{where}: leader: expected true or false, got {options['leader']!r}")
+        for key in ("leader", "leader_stop"):
+            if not isinstance(options[key], bool):
+                raise ValueError(f"{where}: {key}: expected true or false, got {options[key]!r}")
         grid = _grid_of(options["grid"], f"{where}: grid")
     else:
         _require_keys(options, set(), where)
@@ -400,6 +404,7 @@ def load_planner(
                 pose_heads=options["pose_heads"],
                 bev_pool=options["bev_pool"],
                 leader=options["leader"],
+                leader_stop=options["leader_stop"],
             )
         else:
             world_model = WorldModel(config)

@@ -39,7 +39,7 @@ from renderworld.world.pose_inputs import (
     kinematic_features,
     motion_channels,
 )
-from renderworld.world.pose_retime import LeaderRetiming, retime_along_path
+from renderworld.world.pose_retime import LeaderRetiming, retime_along_path, stop_behind_leaders
 
 __all__ = [
     "ANCHORS",
@@ -280,6 +280,9 @@ class PoseWarpWorldModel(nn.Module):
         agents: the pose head also reads :func:`agent_features` of this many tracked movers.
         bev_pool: the pose head's bird's-eye readout cells per side (:class:`PoseHead`).
         leader: the pose head also reads :func:`leader_features`.
+        leader_stop: at prediction time (eval mode), each plan stops behind a leader that
+            brakes hard or has come to a stand
+            (:func:`~renderworld.world.pose_retime.stop_behind_leaders`); training is unchanged.
         pose_heads: how many pose heads (more than one: a
             :class:`~renderworld.world.pose_ensemble.PoseEnsemble`, each member initialised
             from its own seed, the global RNG left as one head leaves it).
@@ -297,6 +300,7 @@ class PoseWarpWorldModel(nn.Module):
         pose_heads: int = 1,
         bev_pool: int = 4,
         leader: bool = False,
+        leader_stop: bool = False,
     ):
         super().__init__()
         if not isinstance(config, WorldModelConfig):
@@ -306,6 +310,10 @@ class PoseWarpWorldModel(nn.Module):
         self.config = config
         #: How the forecast moves other road users (:data:`renderworld.world.movers.MOVERS`).
         self.movers = movers
+        if not isinstance(leader_stop, bool):
+            raise ValueError(f"leader_stop: expected true or false, got {leader_stop!r}")
+        #: Plans stop behind a leader coming to a stop, at prediction time.
+        self.leader_stop = leader_stop
         self.net = WorldModel(config)
         if not isinstance(pose_heads, int) or isinstance(pose_heads, bool) or pose_heads < 1:
             raise ValueError(f"pose_heads: expected an int >= 1, got {pose_heads!r}")
@@ -379,7 +387,12 @@ class PoseWarpWorldModel(nn.Module):
                 parts.append(leader_features(history, history_poses, grid))
             agents = torch.cat(parts, dim=1)
         if not members:
-            return self.pose(history_poses, command, bev, agents)
+            poses, modes = self.pose(history_poses, command, bev, agents)
+            if self.leader_stop and not self.training:
+                if history is None or grid is None:
+                    raise ValueError("history: leader_stop needs the history frames and their grid")
+                poses = stop_behind_leaders(poses, history, history_poses, grid)
+            return poses, modes
         if isinstance(self.pose, PoseEnsemble):
             return self.pose.members_forward(history_poses, command, bev, agents)
         poses, modes = self.pose(history_poses, command, bev, agents)

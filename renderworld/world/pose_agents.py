@@ -29,6 +29,7 @@ __all__ = [
     "agent_features",
     "agent_rows",
     "corridor_coords",
+    "path_curvature",
     "leader_features",
     "leader_row",
 ]
@@ -88,7 +89,7 @@ def corridor_coords(xy: np.ndarray, curvature: float) -> tuple[np.ndarray, np.nd
     return abs(r) * phi, sign * (abs(r) - rho)
 
 
-def _path_curvature(poses: np.ndarray) -> float:
+def path_curvature(poses: np.ndarray) -> float:
     """The curvature (1/m) of the last history step, clipped to :data:`MAX_CURVATURE`; 0 when
     the ego moved under half a metre."""
     step = poses[-1, :2] - poses[-2, :2]
@@ -117,7 +118,7 @@ def leader_row(tracks: list[MoverTrack], history_poses: np.ndarray) -> np.ndarra
         history_poses: [H, 3] (x, y, yaw) of the history frames, current ego frame.
     """
     out = np.zeros(LEADER_FEATURES, dtype=np.float32)
-    kappa = _path_curvature(np.asarray(history_poses, dtype=np.float64))
+    kappa = path_curvature(np.asarray(history_poses, dtype=np.float64))
     best_s, best_t = np.inf, np.inf
     steps = np.arange(1, int(round(ENTRY_HORIZON_S / ENTRY_STEP_S)) + 1) * ENTRY_STEP_S
     for tr in tracks:

@@ -7,17 +7,35 @@ one foreseen to enter it) and scales, per command and future step, the arc lengt
 covered; :func:`retime_along_path` moves each pose to that arc length along the plan's own
 polyline. The path's shape, and so the headings the forecast's warp depends on, stays the head's.
 
+:func:`stop_behind_leaders` is the same retiming by a rule instead of a network: where the car
+ahead in the corridor brakes hard or has come to a stand, the plan stops behind it at constant
+deceleration (``PoseWarpWorldModel(leader_stop=True)``, at prediction time only).
+
 Poses are (x, y, yaw) in the current ego frame (metres, radians); the path starts at the origin.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
-from renderworld.constants import COMMANDS
+from renderworld.constants import COMMANDS, EGO_CENTRE_OFFSET, EGO_LENGTH, KEYFRAME_DT, GridSpec
+from renderworld.world.pose_agents import (
+    CORRIDOR_AHEAD_M,
+    CORRIDOR_HALF_M,
+    corridor_coords,
+    path_curvature,
+)
+from renderworld.world.tracks import MoverTrack, track_movers
 
-__all__ = ["LeaderRetiming", "retime_along_path"]
+__all__ = [
+    "LeaderRetiming",
+    "leader_stop_factors",
+    "retime_along_path",
+    "stop_behind_leaders",
+    "stop_profile",
+]
 
 #: Bounds of the log progress factor: the plan may be slowed to a stop, sped up by at most e.
 LOG_FACTOR_RANGE = (-6.0, 1.0)
@@ -105,3 +123,120 @@ class LeaderRetiming(nn.Module):
         x = torch.cat([history_feats, command_onehot, leader.float()], dim=1)
         out = self.mlp(x).view(x.shape[0], len(COMMANDS), self.steps)
         return torch.exp(out.clamp(*LOG_FACTOR_RANGE))
+
+
+def stop_profile(plan_s: np.ndarray, v0: float, room: float, dt: float) -> np.ndarray:
+    """[S] arc lengths: the plan's ``plan_s`` [S] capped by a constant-deceleration stop from
+    ``v0`` (m/s) within ``room`` metres (<= 0: the ego stands), future step k at (k + 1) dt."""
+    if room <= 0.0 or v0 <= 0.0:
+        return np.zeros_like(plan_s)
+    decel = v0 * v0 / (2.0 * room)
+    t = (np.arange(len(plan_s)) + 1) * dt
+    t_stop = v0 / decel
+    brake = np.where(t < t_stop, v0 * t - 0.5 * decel * t * t, room)
+    return np.minimum(plan_s, brake)
+
+
+def leader_stop_factors(
+    poses: np.ndarray,
+    tracks: list[MoverTrack],
+    history_poses: np.ndarray,
+    grid: GridSpec,
+    dt: float = KEYFRAME_DT,
+    gap: float = 2.0,
+    min_decel: float = 2.0,
+) -> np.ndarray:
+    """[S] progress factors that stop the plan behind a leader coming to a stop (1: no change).
+
+    The leader is the nearest road user in the corridor (that of
+    :func:`~renderworld.world.pose_agents.leader_row`) that moved over the history and now
+    brakes at ``min_decel`` m/s² or more (a quadratic fit of its last 1.5 s along the path) or
+    has come to a stand after moving at over 2 m/s. It is taken to stop at that rate; when the
+    plan would run past ``gap`` metres behind where its rear then is, the plan is retimed to a
+    constant-deceleration stop there from the ego's speed now (metres from the ego's front
+    bumper; the ego stands where there is no room).
+
+    Args:
+        poses: [S, 3] the plan, current ego frame.
+        tracks: :func:`~renderworld.world.tracks.track_movers` of the history.
+        history_poses: [H, 3] the history poses.
+        grid: the occupancy grid (cell sizes).
+        dt: seconds between frames.
+        gap: metres left between the ego's front bumper and the leader's rear.
+        min_decel: the least braking (m/s²) that makes a moving leader one.
+    """
+    ones = np.ones(len(poses))
+    hist = np.asarray(history_poses, dtype=np.float64)
+    kappa = path_curvature(hist)
+    v0 = float(np.hypot(*(hist[-1, :2] - hist[-2, :2]))) / dt
+    best = None
+    for tr in tracks:
+        if not tr.moving:
+            continue
+        s, lat = (float(v) for v in corridor_coords(np.asarray(tr.centroid, float), kappa))
+        if not (0.0 < s <= CORRIDOR_AHEAD_M and abs(lat) < CORRIDOR_HALF_M):
+            continue
+        if best is not None and s >= best[0]:
+            continue
+        recent = tr.times >= -1.5 - 1e-6
+        if recent.sum() < 3:
+            continue
+        ts = tr.times[recent]
+        along, _ = corridor_coords(tr.centroids[recent], kappa)
+        c2, c1, _ = np.polyfit(ts, along, 2)
+        v_now, accel = float(c1), float(2.0 * c2)
+        whole = float(np.hypot(*tr.velocity))
+        if v_now > 0.5 and accel <= -min_decel:
+            travel = v_now * v_now / (2.0 * -accel)
+        elif v_now <= 0.5 and whole > 2.0:
+            travel = 0.0
+        else:
+            continue
+        ix, iy = np.nonzero(tr.cells)
+        cx = grid.range_min[0] + (ix + 0.5) * grid.voxel_size[0]
+        cy = grid.range_min[1] + (iy + 0.5) * grid.voxel_size[1]
+        cs, _ = corridor_coords(np.stack([cx, cy], -1), kappa)
+        rear = (float(cs.min()) if len(cs) else s) - 0.5 * float(grid.voxel_size[0])
+        best = (s, rear + travel)
+    if best is None:
+        return ones
+    room = best[1] - gap - (EGO_CENTRE_OFFSET + EGO_LENGTH / 2)
+    steps = np.linalg.norm(
+        np.diff(np.concatenate([np.zeros((1, 2)), poses[:, :2]]), axis=0), axis=1
+    )
+    plan_s = np.cumsum(steps)
+    if plan_s[-1] <= max(room, 0.0):
+        return ones
+    capped = stop_profile(plan_s, v0, room, dt)
+    return np.where(plan_s > 1e-6, capped / np.maximum(plan_s, 1e-6), 1.0)
+
+
+def stop_behind_leaders(
+    poses: torch.Tensor,
+    history: torch.Tensor,
+    history_poses: torch.Tensor,
+    grid: GridSpec,
+    dt: float = KEYFRAME_DT,
+) -> torch.Tensor:
+    """Each plan of a batch stopped behind its leader coming to a stop
+    (:func:`leader_stop_factors`, tracked on the CPU), the rest unchanged.
+
+    Args:
+        poses: [B, S, 3] plans, current ego frame.
+        history: [B, H, X, Y, Z] integer labels of the history frames.
+        history_poses: [B, H, 3] their poses in the current ego frame.
+        grid: the occupancy grid.
+        dt: seconds between frames.
+
+    Returns:
+        [B, S, 3] on ``poses``' device and dtype.
+    """
+    occ = history.detach().cpu().to(torch.int16).numpy()
+    hp = history_poses.detach().cpu().double().numpy()
+    plans = poses.detach().cpu().double().numpy()
+    factors = []
+    for i in range(occ.shape[0]):
+        tracks = track_movers(occ[i], hp[i], grid, dt)
+        factors.append(leader_stop_factors(plans[i], tracks, hp[i], grid, dt))
+    f = torch.as_tensor(np.stack(factors), dtype=poses.dtype, device=poses.device)
+    return retime_along_path(poses, f)

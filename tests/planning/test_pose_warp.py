@@ -547,3 +547,14 @@ def test_bundles_keep_a_pose_head_that_reads_its_leader(tmp_path):
     bad = _tampered(tmp_path, lambda d: d["world_model"]["options"].update(leader="yes"))
     with pytest.raises(ValueError, match="leader: expected true or false"):
         load_planner(bad)
+
+
+def test_bundles_keep_the_stop_behind_a_braking_leader(tmp_path):
+    path, loaded, _ = _round_trip(tmp_path, "s.pt", leader_stop=True)
+    assert torch.load(path, weights_only=True)["world_model"]["options"]["leader_stop"] is True
+    assert loaded.world_model.leader_stop and not loaded.world_model.training
+    old = _tampered(tmp_path, lambda d: d["world_model"]["options"].pop("leader_stop"))
+    assert not load_planner(old).world_model.leader_stop
+    bad = _tampered(tmp_path, lambda d: d["world_model"]["options"].update(leader_stop=1))
+    with pytest.raises(ValueError, match="leader_stop: expected true or false"):
+        load_planner(bad)

@@ -34,6 +34,7 @@ BASE = ["stage=world_model", "stage.tokenizer_ckpt=tok.pt"]
         ("stage.pose_agents=-1", "stage.pose_agents"),
         ("stage.pose_agents=2.5", "stage.pose_agents"),
         ("stage.pose_leader=2", "stage.pose_leader"),
+        ("stage.pose_leader_stop=2", "stage.pose_leader_stop"),
         ("stage.pose_heads=0", "stage.pose_heads"),
         ("stage.pose_heads=true", "stage.pose_heads"),
         ("stage.pose_bev_pool=0", "stage.pose_bev_pool"),

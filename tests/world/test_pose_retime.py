@@ -7,7 +7,11 @@ import math
 import pytest
 import torch
 
+from renderworld.constants import GridSpec
 from renderworld.world.pose_retime import LeaderRetiming, retime_along_path
+
+#: 1.6 m cells over +-40 m: the coarse grid's reach.
+GRID = GridSpec("test-lead", (-40.0, -40.0, -1.0), (40.0, 40.0, 3.0), (50, 50, 2))
 
 
 def _arc(radius=20.0, step=2.0, n=6):
@@ -93,3 +97,87 @@ def test_the_pose_head_with_a_leader_keeps_its_path_and_changes_its_progress():
         assert (near - p).norm(dim=-1).min() < 1e-4
     with pytest.raises(ValueError, match="leader=True"):
         head(hist, cmd, bev)
+
+
+def _lead(centroid, v_now, decel, half_length=2.3):
+    """A car in the ego's lane at ``centroid`` moving at ``v_now`` m/s along x, braking at
+    ``decel`` m/s² over the whole 2 s history; its cells span ``half_length`` either side."""
+    import numpy as np
+
+    from renderworld.world.tracks import MoverTrack
+    from tests.world.test_movers import CAR
+
+    t = np.array([0.0, -0.5, -1.0, -1.5, -2.0])
+    x = centroid[0] + v_now * t - 0.5 * decel * t**2  # earlier: faster when braking
+    cents = np.stack([x, np.full_like(x, centroid[1])], 1)
+    cells = np.zeros(GRID.shape[:2], bool)
+    lo = GRID.range_min[0]
+    for xx in np.arange(centroid[0] - half_length + 0.8, centroid[0] + half_length, 1.6):
+        cells[int((xx - lo) // 1.6), int((centroid[1] - GRID.range_min[1]) // 1.6)] = True
+    vel = np.polyfit(t, cents, 1)[0]
+    return MoverTrack(CAR, cells, np.asarray(centroid, float), t, cents, vel, True)
+
+
+def test_a_plan_stops_behind_a_lead_car_braking_hard_and_nothing_else_changes():
+    import numpy as np
+
+    from renderworld.constants import EGO_CENTRE_OFFSET, EGO_LENGTH
+    from renderworld.world.pose_retime import leader_stop_factors, stop_profile
+
+    hist = np.stack([10.0 * np.arange(-4, 1) * 0.5, np.zeros(5), np.zeros(5)], 1)  # 10 m/s
+    plan = np.stack([10.0 * np.arange(1, 7) * 0.5, np.zeros(6), np.zeros(6)], 1)  # goes on
+    braking = _lead((16.0, 0.0), v_now=6.0, decel=4.0)
+    f = leader_stop_factors(plan, [braking], hist, GRID)
+    s = f * plan[:, 0]
+    assert (f < 1).all() and np.all(np.diff(s) >= -1e-9)
+    # It stops where the lead car will stand (6² / 8 = 4.5 m on), 2 m behind its rear.
+    rear = braking.cells.nonzero()[0].min() * 1.6 + GRID.range_min[0]
+    room = rear + 4.5 - 2.0 - (EGO_CENTRE_OFFSET + EGO_LENGTH / 2)
+    assert s[-1] == pytest.approx(room, abs=1e-6)
+    np.testing.assert_allclose(s, stop_profile(plan[:, 0], 10.0, room, 0.5))
+    # A lead car keeping its speed, one braking gently, one far enough ahead, a parked car, one
+    # in the next lane: the plan is left alone.
+    cruise = _lead((16.0, 0.0), v_now=10.0, decel=0.0)
+    gentle = _lead((16.0, 0.0), v_now=9.0, decel=1.0)
+    far = _lead((38.0, 0.0), v_now=6.0, decel=4.0)
+    beside = _lead((16.0, 3.5), v_now=6.0, decel=4.0)
+    parked = _lead((16.0, 0.0), v_now=0.0, decel=0.0)
+    parked.moving = False
+    for other in (cruise, gentle, far, beside, parked):
+        np.testing.assert_array_equal(leader_stop_factors(plan, [other], hist, GRID), 1.0)
+    # One that has come to a stand after moving counts; no room at all: the ego stands.
+    stood = _lead((7.0, 0.0), v_now=0.0, decel=4.0)
+    np.testing.assert_array_equal(leader_stop_factors(plan, [stood], hist, GRID), 0.0)
+    np.testing.assert_array_equal(stop_profile(np.ones(3), 5.0, -1.0, 0.5), 0.0)
+
+
+def test_the_world_model_stops_its_plan_at_prediction_time_only():
+    import numpy as np
+
+    from renderworld.world import WorldModelConfig
+    from renderworld.world.pose import PoseWarpWorldModel
+    from tests.world.test_movers import _scene
+
+    cfg = WorldModelConfig(
+        codebook_sizes=(8,), token_grid=(4, 4), embed_dim=16, num_heads=2, num_scales=1,
+        layers_per_scale=(1,), history_frames=5, future_frames=2,
+    )  # fmt: skip
+    from tests.world.test_movers import GRID as SCENE_GRID
+
+    occ, poses = _scene(ego_step=1)
+    hist, hp = torch.from_numpy(occ)[None], torch.from_numpy(poses)[None].float()
+    models = {}
+    for flag in (False, True):
+        torch.manual_seed(0)
+        models[flag] = PoseWarpWorldModel(cfg, leader_stop=flag).eval()
+    plain, _ = models[False].predict_poses(hp, torch.tensor([1]), hist[:, -1], hist, SCENE_GRID)
+    stop, _ = models[True].predict_poses(hp, torch.tensor([1]), hist[:, -1], hist, SCENE_GRID)
+    torch.testing.assert_close(stop, plain)  # nobody brakes ahead in this scene
+    models[True].train()
+    with torch.no_grad():
+        trained, _ = models[True].predict_poses(hp, torch.tensor([1]), hist[:, -1])
+    torch.testing.assert_close(trained, plain)  # training: the rule is off, no history needed
+    with pytest.raises(ValueError, match="history: leader_stop needs"):
+        models[True].eval().predict_poses(hp, torch.tensor([1]), hist[:, -1])
+    with pytest.raises(ValueError, match="leader_stop: expected true or false"):
+        PoseWarpWorldModel(cfg, leader_stop=np.bool_(True))

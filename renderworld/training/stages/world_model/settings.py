@@ -70,6 +70,7 @@ class StageSettings:
     pose_motion_frames: int = 0
     pose_agents: int = 0
     pose_leader: bool = False
+    pose_leader_stop: bool = False
     pose_heads: int = 1
     pose_bev_pool: int = 4
     pose_lr_scale: float = 1.0
@@ -144,6 +145,9 @@ def stage_settings(cfg: Any) -> StageSettings:
     leader = s.get("pose_leader", False)
     if not isinstance(leader, bool):
         raise ValueError(f"stage.pose_leader: expected true or false, got {leader!r}")
+    leader_stop = s.get("pose_leader_stop", False)
+    if not isinstance(leader_stop, bool):
+        raise ValueError(f"stage.pose_leader_stop: expected true or false, got {leader_stop!r}")
     heads = s.get("pose_heads", 1)
     heads = 1 if heads is None else heads
     if not isinstance(heads, int) or isinstance(heads, bool) or heads < 1:
@@ -207,6 +211,7 @@ def stage_settings(cfg: Any) -> StageSettings:
         pose_motion_frames=motion,
         pose_agents=agents,
         pose_leader=leader,
+        pose_leader_stop=leader_stop,
         pose_heads=heads,
         pose_bev_pool=bev_pool,
         pose_lr_scale=lr_scale,
@@ -275,7 +280,8 @@ def build_world_model(
 
     ``cfg``: the run config whose ``stage.pose_anchors`` (default ``"ctr"``),
     ``stage.pose_kinematics`` (default false), ``stage.pose_motion_frames`` (default 0),
-    ``stage.pose_agents`` (default 0), ``stage.pose_leader`` (default false) and
+    ``stage.pose_agents`` (default 0), ``stage.pose_leader``, ``stage.pose_leader_stop``
+    (default false) and
     ``stage.pose_heads`` (default 1) the pose head uses
     and whose ``stage.movers`` (default ``"static"``) the forecast applies (validated by
     :func:`stage_settings`).
@@ -293,6 +299,7 @@ def build_world_model(
         motion_frames=st.pose_motion_frames,
         agents=st.pose_agents,
         leader=st.pose_leader,
+        leader_stop=st.pose_leader_stop,
         pose_heads=st.pose_heads,
         bev_pool=st.pose_bev_pool,
     )
