@@ -352,18 +352,10 @@ def load_planner(
             raise ValueError(
                 f"{where}: kinematics: expected true or false, got {options['kinematics']!r}"
             )
-        frames = options["motion_frames"]
-        if not isinstance(frames, int) or isinstance(frames, bool) or frames < 0:
-            raise ValueError(f"{where}: motion_frames: expected an int >= 0, got {frames!r}")
-        agents = options["agents"]
-        if not isinstance(agents, int) or isinstance(agents, bool) or agents < 0:
-            raise ValueError(f"{where}: agents: expected an int >= 0, got {agents!r}")
-        heads = options["pose_heads"]
-        if not isinstance(heads, int) or isinstance(heads, bool) or heads < 1:
-            raise ValueError(f"{where}: pose_heads: expected an int >= 1, got {heads!r}")
-        pool = options["bev_pool"]
-        if not isinstance(pool, int) or isinstance(pool, bool) or pool < 1:
-            raise ValueError(f"{where}: bev_pool: expected an int >= 1, got {pool!r}")
+        for key, least in (("motion_frames", 0), ("agents", 0), ("pose_heads", 1), ("bev_pool", 1)):
+            v = options[key]
+            if not isinstance(v, int) or isinstance(v, bool) or v < least:
+                raise ValueError(f"{where}: {key}: expected an int >= {least}, got {v!r}")
         for key in ("leader", "leader_stop"):
             if not isinstance(options[key], bool):
                 raise ValueError(f"{where}: {key}: expected true or false, got {options[key]!r}")

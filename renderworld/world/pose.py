@@ -24,12 +24,7 @@ from renderworld.world.config import WorldModelConfig
 from renderworld.world.model import WorldModel
 from renderworld.world.mover_head import MoverHead
 from renderworld.world.movers import MOVERS
-from renderworld.world.pose_agents import (
-    AGENT_FEATURES,
-    LEADER_FEATURES,
-    agent_features,
-    leader_features,
-)
+from renderworld.world.pose_agents import AGENT_FEATURES, LEADER_FEATURES, road_user_inputs
 from renderworld.world.pose_ensemble import PoseEnsemble
 from renderworld.world.pose_inputs import (
     BEV_GROUPS,
@@ -374,18 +369,7 @@ class PoseWarpWorldModel(nn.Module):
                 )
             motion = motion_channels(history, history_poses, grid, frames)
             bev = torch.cat([bev, motion.to(bev.device)], dim=1)
-        agents = None
-        if self.pose.agents or self.pose.leader:
-            if history is None or grid is None:
-                raise ValueError(
-                    f"history: the pose head reads agents={self.pose.agents}, "
-                    f"leader={self.pose.leader}; pass the history frames and their grid"
-                )
-            parts = [agent_features(history, history_poses, grid, self.pose.agents)] if (
-                self.pose.agents) else []  # fmt: skip
-            if self.pose.leader:
-                parts.append(leader_features(history, history_poses, grid))
-            agents = torch.cat(parts, dim=1)
+        agents = road_user_inputs(self.pose, history, history_poses, grid)
         if not members:
             poses, modes = self.pose(history_poses, command, bev, agents)
             if self.leader_stop and not self.training:

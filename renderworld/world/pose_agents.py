@@ -30,6 +30,7 @@ __all__ = [
     "agent_rows",
     "corridor_coords",
     "path_curvature",
+    "road_user_inputs",
     "leader_features",
     "leader_row",
 ]
@@ -236,3 +237,26 @@ def agent_features(
         raise ValueError(f"k: expected an int >= 1, got {k!r}")
     return _cached_rows(history, history_poses, grid, dt, b"agents%d" % k,
                         lambda tracks, _poses: agent_rows(tracks, k))  # fmt: skip
+
+
+def road_user_inputs(
+    head, history: torch.Tensor | None, history_poses: torch.Tensor, grid: GridSpec | None
+) -> torch.Tensor | None:
+    """The ``agents`` input of a pose head (or ensemble): :func:`agent_features` of its
+    ``agents`` movers, then :func:`leader_features` when it reads the ``leader``; None when
+    it reads neither.
+
+    Raises:
+        ValueError: naming ``history`` when the head reads them and it or ``grid`` is missing.
+    """
+    if not (head.agents or head.leader):
+        return None
+    if history is None or grid is None:
+        raise ValueError(
+            f"history: the pose head reads agents={head.agents}, leader={head.leader}; pass the "
+            "history frames and their grid"
+        )
+    parts = [agent_features(history, history_poses, grid, head.agents)] if head.agents else []
+    if head.leader:
+        parts.append(leader_features(history, history_poses, grid))
+    return torch.cat(parts, dim=1)
