@@ -127,7 +127,8 @@ class LeaderRetiming(nn.Module):
 
 def stop_profile(plan_s: np.ndarray, v0: float, room: float, dt: float) -> np.ndarray:
     """[S] arc lengths: the plan's ``plan_s`` [S] capped by a constant-deceleration stop from
-    ``v0`` (m/s) within ``room`` metres (<= 0: the ego stands), future step k at (k + 1) dt."""
+    ``v0`` (m/s) within ``room`` metres (the ego stands where ``room`` <= 0 or ``v0`` <= 0),
+    future step k at (k + 1) dt."""
     if room <= 0.0 or v0 <= 0.0:
         return np.zeros_like(plan_s)
     decel = v0 * v0 / (2.0 * room)
