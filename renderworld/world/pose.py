@@ -275,8 +275,8 @@ class PoseWarpWorldModel(nn.Module):
         agents: the pose head also reads :func:`agent_features` of this many tracked movers.
         bev_pool: the pose head's bird's-eye readout cells per side (:class:`PoseHead`).
         leader: the pose head also reads :func:`leader_features`.
-        leader_stop: at prediction time (eval mode), each plan stops behind a leader that
-            brakes hard or has come to a stand
+        leader_stop: at prediction time (eval mode, not with ``members``), the command's plan
+            (not the other ``modes``) stops behind a leader that brakes hard or has come to a stand
             (:func:`~renderworld.world.pose_retime.stop_behind_leaders`); training is unchanged.
         pose_heads: how many pose heads (more than one: a
             :class:`~renderworld.world.pose_ensemble.PoseEnsemble`, each member initialised

@@ -78,7 +78,7 @@ def corridor_coords(xy: np.ndarray, curvature: float) -> tuple[np.ndarray, np.nd
     """Arc length ``s`` and signed lateral offset (left positive) of points [..., 2] from the arc
     that leaves the origin along +x with ``curvature`` (1/m, left positive); metres.
 
-    Points behind the origin or past a quarter turn get ``s`` <= 0 or beyond it, as they fall.
+    Points behind the origin get ``s`` <= 0; on a curve, ``s`` wraps at a half turn.
     """
     x, y = xy[..., 0], xy[..., 1]
     if abs(curvature) < 1e-4:

@@ -47,7 +47,7 @@ def retime_along_path(poses: torch.Tensor, factors: torch.Tensor) -> torch.Tenso
 
     Args:
         poses: [..., S, 3] (x, y, yaw), a path from the origin (pose 0 at (0, 0, 0) implied).
-        factors: [..., S] non-negative progress factors (1: unchanged).
+        factors: [..., S] non-negative progress factors (1: the same place, up to rounding).
 
     Returns:
         [..., S, 3] retimed poses; yaw interpolated like the positions (unwrapped); a plan
@@ -113,7 +113,7 @@ class LeaderRetiming(nn.Module):
 
     def forward(self, history_feats: torch.Tensor, command_onehot: torch.Tensor,
                 leader: torch.Tensor) -> torch.Tensor:  # fmt: skip
-        """[B, len(COMMANDS), S] progress factors in (e^-6, e].
+        """[B, len(COMMANDS), S] progress factors in [e^-6, e].
 
         Args:
             history_feats: [B, 4 H] the pose head's history features.
@@ -127,8 +127,9 @@ class LeaderRetiming(nn.Module):
 
 def stop_profile(plan_s: np.ndarray, v0: float, room: float, dt: float) -> np.ndarray:
     """[S] arc lengths: the plan's ``plan_s`` [S] capped by a constant-deceleration stop from
-    ``v0`` (m/s) within ``room`` metres (the ego stands where ``room`` <= 0 or ``v0`` <= 0),
-    future step k at (k + 1) dt."""
+    ``v0`` (m/s) that ends at ``room`` metres (the ego stands where ``room`` <= 0 or ``v0`` <= 0;
+    where the stop takes longer than the horizon the plan ends short of ``room``), future step k
+    at (k + 1) dt."""
     if room <= 0.0 or v0 <= 0.0:
         return np.zeros_like(plan_s)
     decel = v0 * v0 / (2.0 * room)
@@ -152,7 +153,8 @@ def leader_stop_factors(
     The leader is the nearest road user in the corridor (that of
     :func:`~renderworld.world.pose_agents.leader_row`) that moved over the history and now
     brakes at ``min_decel`` m/s² or more (a quadratic fit of its last 1.5 s along the path) or
-    has come to a stand after moving at over 2 m/s. It is taken to stop at that rate; when the
+    has come to a stand (along the path) after moving at over 2 m/s (its whole-history speed, in
+    any direction). It is taken to stop at that rate; when the
     plan would run past ``gap`` metres behind where its rear then is, the plan is retimed to a
     constant-deceleration stop there from the ego's speed now (metres from the ego's front
     bumper; the ego stands where there is no room).
@@ -230,7 +232,8 @@ def stop_behind_leaders(
         dt: seconds between frames.
 
     Returns:
-        [B, S, 3] on ``poses``' device and dtype.
+        [B, S, 3] on ``poses``' device and dtype; a plan the rule does not stop is returned
+        bit for bit.
     """
     occ = history.detach().cpu().to(torch.int16).numpy()
     hp = history_poses.detach().cpu().double().numpy()
@@ -240,4 +243,5 @@ def stop_behind_leaders(
         tracks = track_movers(occ[i], hp[i], grid, dt)
         factors.append(leader_stop_factors(plans[i], tracks, hp[i], grid, dt))
     f = torch.as_tensor(np.stack(factors), dtype=poses.dtype, device=poses.device)
-    return retime_along_path(poses, f)
+    keep = (f == 1.0).all(dim=-1)[:, None, None]  # plans the rule leaves alone: bit for bit
+    return torch.where(keep, poses, retime_along_path(poses, f))

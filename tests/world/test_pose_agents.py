@@ -200,12 +200,14 @@ def test_leader_row_foresees_a_pedestrian_stepping_in_and_a_car_cutting_in():
 def test_leader_features_track_the_scene_mirror_with_it_and_feed_the_head():
     from renderworld.world.pose_agents import LEADER_FEATURES, leader_features
 
-    occ, poses = _scene(mover=(16, 10), mover_step=(1, 0), ego_step=0)
+    # A car moving ahead in the ego's lane (row 15: y = 0.8 m), the parked one off to the side.
+    occ, poses = _scene(mover=(20, 15), mover_step=(1, 0), ego_step=0)
     hist = torch.from_numpy(occ)[None]
     hp = torch.from_numpy(poses)[None].float()
     f = leader_features(hist, hp, GRID)
     m = leader_features(hist.flip(3), hp * torch.tensor([1.0, -1.0, -1.0]), GRID)
     assert f.shape == (1, LEADER_FEATURES) and f.dtype == torch.float32
+    assert f[0, 0] == 1.0 and f[0, 2] > 0 and f[0, 4] != 0  # present, moving on, off-centre
     sign = torch.ones(LEADER_FEATURES)
     sign[4] = -1.0  # the lateral offset changes side, nothing else
     torch.testing.assert_close(m[0], f[0] * sign)
