@@ -181,3 +181,40 @@ def test_the_world_model_stops_its_plan_at_prediction_time_only():
         models[True].eval().predict_poses(hp, torch.tensor([1]), hist[:, -1])
     with pytest.raises(ValueError, match="leader_stop: expected true or false"):
         PoseWarpWorldModel(cfg, leader_stop=np.bool_(True))
+
+
+def test_the_world_model_stops_its_plan_behind_a_car_that_has_just_stood():
+    import numpy as np
+
+    from renderworld.world import WorldModelConfig
+    from renderworld.world.pose import PoseWarpWorldModel
+    from tests.world.test_movers import CAR, _frame
+    from tests.world.test_movers import GRID as SCENE_GRID
+
+    cfg = WorldModelConfig(
+        codebook_sizes=(8,), token_grid=(4, 4), embed_dim=16, num_heads=2, num_scales=1,
+        layers_per_scale=(1,), history_frames=5, future_frames=6,
+    )  # fmt: skip
+    # The ego drives 1 voxel (1.6 m) per frame along x; a car in its lane (row 15: y = 0.8 m)
+    # moved 1 voxel per frame and stands in the current one (world cells, current frame: x =
+    # 18, 5.6 m ahead). Each frame in its own ego frame (the ego j voxels back).
+    hp = torch.tensor([[[-j * 1.6, 0.0, 0.0] for j in range(4, -1, -1)]])
+    models = {}
+    for flag in (False, True):
+        torch.manual_seed(0)
+        models[flag] = PoseWarpWorldModel(cfg, leader_stop=flag).eval()
+
+    def plans(world_x):
+        frames = [_frame([(CAR, world_x[4 - j] + j, 15)]) for j in range(4, -1, -1)]
+        hist = torch.from_numpy(np.stack(frames))[None]
+        return [models[f].predict_poses(hp, torch.tensor([1]), hist[:, -1], hist, SCENE_GRID)[0]
+                for f in (False, True)]  # fmt: skip
+
+    plain, stop = plans([15, 16, 17, 18, 18])
+    # Untrained: constant turn rate, 1.6 m per step on; the car's rear is 4.8 m ahead, less
+    # than the 2 m gap and the ego's front overhang: no room, the plan stands.
+    assert plain[0, -1, 0] > 9.0
+    torch.testing.assert_close(stop, torch.zeros_like(stop))
+    # The same car driving on at 3.2 m/s: the plan is the model's own, bit for bit.
+    plain, stop = plans([14, 15, 16, 17, 18])
+    assert torch.equal(stop, plain)

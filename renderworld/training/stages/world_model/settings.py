@@ -105,6 +105,14 @@ def _choice(s: Any, key: str, default: str, allowed: tuple[str, ...]) -> str:
     return str(value)
 
 
+def _flag(s: Any, key: str) -> bool:
+    """``stage.<key>`` as a bool (default false); anything else refused naming the key."""
+    value = s.get(key, False)
+    if not isinstance(value, bool):
+        raise ValueError(f"stage.{key}: expected true or false, got {value!r}")
+    return value
+
+
 def stage_settings(cfg: Any) -> StageSettings:
     """The validated ``stage.*`` keys of a world-model run config (ValueError naming the key).
 
@@ -128,12 +136,8 @@ def stage_settings(cfg: Any) -> StageSettings:
             "stage.tokenizer_ckpt: required; pass the tokenizer run's checkpoint, e.g. "
             "stage.tokenizer_ckpt=outputs/train/tokenizer/<time>/checkpoints/best.pt"
         )
-    mirror = s.get("pose_mirror", False)
-    if not isinstance(mirror, bool):
-        raise ValueError(f"stage.pose_mirror: expected true or false, got {mirror!r}")
-    kinematics = s.get("pose_kinematics", False)
-    if not isinstance(kinematics, bool):
-        raise ValueError(f"stage.pose_kinematics: expected true or false, got {kinematics!r}")
+    mirror = _flag(s, "pose_mirror")
+    kinematics = _flag(s, "pose_kinematics")
     motion = s.get("pose_motion_frames") or 0
     if not isinstance(motion, int) or isinstance(motion, bool) or not 0 <= motion < history:
         raise ValueError(
@@ -142,12 +146,8 @@ def stage_settings(cfg: Any) -> StageSettings:
     agents = s.get("pose_agents") or 0
     if not isinstance(agents, int) or isinstance(agents, bool) or agents < 0:
         raise ValueError(f"stage.pose_agents: expected an int >= 0, got {agents!r}")
-    leader = s.get("pose_leader", False)
-    if not isinstance(leader, bool):
-        raise ValueError(f"stage.pose_leader: expected true or false, got {leader!r}")
-    leader_stop = s.get("pose_leader_stop", False)
-    if not isinstance(leader_stop, bool):
-        raise ValueError(f"stage.pose_leader_stop: expected true or false, got {leader_stop!r}")
+    leader = _flag(s, "pose_leader")
+    leader_stop = _flag(s, "pose_leader_stop")
     heads = s.get("pose_heads", 1)
     heads = 1 if heads is None else heads
     if not isinstance(heads, int) or isinstance(heads, bool) or heads < 1:
