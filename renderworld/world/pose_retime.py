@@ -24,10 +24,13 @@ from renderworld.constants import COMMANDS, EGO_CENTRE_OFFSET, EGO_LENGTH, KEYFR
 from renderworld.world.pose_agents import (
     CORRIDOR_AHEAD_M,
     CORRIDOR_HALF_M,
+    ENTRY_HORIZON_S,
+    ENTRY_STEP_S,
+    RECENT_S,
     corridor_coords,
     path_curvature,
 )
-from renderworld.world.tracks import MoverTrack, track_movers
+from renderworld.world.tracks import MoverTrack, fit_velocity, track_movers
 
 __all__ = [
     "LeaderRetiming",
@@ -125,18 +128,53 @@ class LeaderRetiming(nn.Module):
         return torch.exp(out.clamp(*LOG_FACTOR_RANGE))
 
 
-def stop_profile(plan_s: np.ndarray, v0: float, room: float, dt: float) -> np.ndarray:
-    """[S] arc lengths: the plan's ``plan_s`` [S] capped by a constant-deceleration stop from
-    ``v0`` (m/s) that ends at ``room`` metres (the ego stands where ``room`` <= 0 or ``v0`` <= 0;
-    where the stop takes longer than the horizon the plan ends short of ``room``), future step k
-    at (k + 1) dt."""
-    if room <= 0.0 or v0 <= 0.0:
-        return np.zeros_like(plan_s)
-    decel = v0 * v0 / (2.0 * room)
+def stop_profile(
+    plan_s: np.ndarray, v0: float, room: float, dt: float, v_lead: float = 0.0
+) -> np.ndarray:
+    """[S] arc lengths: the plan's ``plan_s`` [S] capped by a constant deceleration from ``v0``
+    (m/s) to ``v_lead`` that ends ``room`` metres ahead of where a leader moving on at ``v_lead``
+    started (with ``v_lead`` 0, a stop at ``room``; the ego stands where ``room`` <= 0 or ``v0`` <=
+    0, and keeps behind the leader's motion where ``v_lead`` > 0; where the stop takes longer than
+    the horizon the plan ends short of ``room``), future step k at (k + 1) dt."""
     t = (np.arange(len(plan_s)) + 1) * dt
-    t_stop = v0 / decel
-    brake = np.where(t < t_stop, v0 * t - 0.5 * decel * t * t, room)
+    lead = room + v_lead * t
+    if room <= 0.0 or v0 <= v_lead:
+        if v_lead <= 0.0:
+            return np.zeros_like(plan_s)
+        return np.minimum(plan_s, np.maximum(lead, 0.0))
+    decel = (v0 - v_lead) ** 2 / (2.0 * room)
+    t_end = (v0 - v_lead) / decel
+    brake = np.where(t < t_end, v0 * t - 0.5 * decel * t * t, lead)
     return np.minimum(plan_s, brake)
+
+
+def _extent_along(tr: MoverTrack, grid: GridSpec, kappa: float) -> tuple[float, float]:
+    """(first, last) arc length (m) of a track's cells along the corridor, half a cell out."""
+    ix, iy = np.nonzero(tr.cells)
+    cx = grid.range_min[0] + (ix + 0.5) * grid.voxel_size[0]
+    cy = grid.range_min[1] + (iy + 0.5) * grid.voxel_size[1]
+    cs, _ = corridor_coords(np.stack([cx, cy], -1), kappa)
+    half = 0.5 * float(grid.voxel_size[0])
+    if not len(cs):
+        s = float(corridor_coords(np.asarray(tr.centroid, float), kappa)[0])
+        return s - half, s + half
+    return float(cs.min()) - half, float(cs.max()) + half
+
+
+def _entering(tr: MoverTrack, kappa: float) -> tuple[float, float, float] | None:
+    """(entry time s, arc length m at entry, speed along the path there m/s, >= 0) of a moving
+    track outside the corridor that its last second's velocity carries into it within
+    :data:`ENTRY_HORIZON_S`; None when it does not enter."""
+    recent = tr.times >= -RECENT_S - 1e-6
+    v = fit_velocity(tr.times[recent], tr.centroids[recent])
+    steps = np.arange(1, int(round(ENTRY_HORIZON_S / ENTRY_STEP_S)) + 1) * ENTRY_STEP_S
+    ps, pl = corridor_coords(tr.centroid[None] + steps[:, None] * v[None], kappa)
+    inside = np.flatnonzero((ps > 0.0) & (ps <= CORRIDOR_AHEAD_M) & (np.abs(pl) < CORRIDOR_HALF_M))
+    if not len(inside):
+        return None
+    s_e = float(ps[inside[0]])
+    head = kappa * s_e
+    return float(steps[inside[0]]), s_e, max(float(v @ (np.cos(head), np.sin(head))), 0.0)
 
 
 def leader_stop_factors(
@@ -147,17 +185,24 @@ def leader_stop_factors(
     dt: float = KEYFRAME_DT,
     gap: float = 2.0,
     min_decel: float = 2.0,
+    entering: bool = False,
 ) -> np.ndarray:
     """[S] progress factors that stop the plan behind a leader coming to a stop (1: no change).
 
     The leader is the nearest road user in the corridor (that of
     :func:`~renderworld.world.pose_agents.leader_row`) that moved over the history and now
     brakes at ``min_decel`` m/s² or more (a quadratic fit of its last 1.5 s along the path) or
-    has come to a stand (along the path) after moving at over 2 m/s (its whole-history speed, in
-    any direction). It is taken to stop at that rate; when the
-    plan would run past ``gap`` metres behind where its rear then is, the plan is retimed to a
-    constant-deceleration stop there from the ego's speed now (metres from the ego's front
-    bumper; the ego stands where there is no room).
+    has come to a stand (under 0.5 m/s in any direction) after moving at over 2 m/s (its
+    whole-history speed). It is taken to stop at that rate; when the plan would run past ``gap``
+    metres behind where its rear then is, the plan is retimed to a constant-deceleration stop
+    there from the ego's speed now (metres from the ego's front bumper; the ego stands where
+    there is no room). With ``entering``, also each moving road user that its last second's
+    velocity carries into the corridor within 3 s (a car cutting in, a pedestrian stepping off
+    the kerb) is taken to go on along the path at its speed along it from there (0 for one
+    crossing); where the plan reaches the place after it (the ego's front bumper short of its rear
+    when it enters) and would come within ``gap`` of its rear from then on, the plan is retimed
+    to slow uniformly to that speed ``gap`` behind it (:func:`stop_profile`). One the ego passes
+    first is left to it.
 
     Args:
         poses: [S, 3] the plan, current ego frame.
@@ -167,17 +212,33 @@ def leader_stop_factors(
         dt: seconds between frames.
         gap: metres left between the ego's front bumper and the leader's rear.
         min_decel: the least braking (m/s²) that makes a moving leader one.
+        entering: also slow for road users foreseen to enter the corridor.
     """
     ones = np.ones(len(poses))
     hist = np.asarray(history_poses, dtype=np.float64)
     kappa = path_curvature(hist)
     v0 = float(np.hypot(*(hist[-1, :2] - hist[-2, :2]))) / dt
-    best = None
+    steps = np.linalg.norm(
+        np.diff(np.concatenate([np.zeros((1, 2)), poses[:, :2]]), axis=0), axis=1
+    )
+    plan_s = np.cumsum(steps)
+    t = (np.arange(len(poses)) + 1) * dt
+    front = EGO_CENTRE_OFFSET + EGO_LENGTH / 2
+    best, capped = None, plan_s
     for tr in tracks:
         if not tr.moving:
             continue
         s, lat = (float(v) for v in corridor_coords(np.asarray(tr.centroid, float), kappa))
         if not (0.0 < s <= CORRIDOR_AHEAD_M and abs(lat) < CORRIDOR_HALF_M):
+            hit = _entering(tr, kappa) if entering and s > 0.0 else None
+            if hit is not None:
+                t_e, s_e, v_u = hit
+                first, last = _extent_along(tr, grid, kappa)
+                room = s_e - v_u * t_e - (s - first) - gap - front  # its rear, moved back to now
+                after = t >= t_e - 1e-6
+                second = np.interp(t_e, np.r_[0.0, t], np.r_[0.0, plan_s]) <= room + v_u * t_e + gap
+                if second and (plan_s[after] > room + v_u * t[after]).any():
+                    capped = np.minimum(capped, stop_profile(plan_s, v0, room, dt, v_u))
             continue
         if best is not None and s >= best[0]:
             continue
@@ -185,32 +246,24 @@ def leader_stop_factors(
         if recent.sum() < 3:
             continue
         ts = tr.times[recent]
-        along, _ = corridor_coords(tr.centroids[recent], kappa)
+        along, across = corridor_coords(tr.centroids[recent], kappa)
         c2, c1, _ = np.polyfit(ts, along, 2)
         v_now, accel = float(c1), float(2.0 * c2)
+        v_across = float(np.polyfit(ts, across, 2)[1])
         whole = float(np.hypot(*tr.velocity))
         if v_now > 0.5 and accel <= -min_decel:
             travel = v_now * v_now / (2.0 * -accel)
-        elif v_now <= 0.5 and whole > 2.0:
+        elif np.hypot(v_now, v_across) <= 0.5 and whole > 2.0:
             travel = 0.0
         else:
             continue
-        ix, iy = np.nonzero(tr.cells)
-        cx = grid.range_min[0] + (ix + 0.5) * grid.voxel_size[0]
-        cy = grid.range_min[1] + (iy + 0.5) * grid.voxel_size[1]
-        cs, _ = corridor_coords(np.stack([cx, cy], -1), kappa)
-        rear = (float(cs.min()) if len(cs) else s) - 0.5 * float(grid.voxel_size[0])
-        best = (s, rear + travel)
-    if best is None:
+        best = (s, _extent_along(tr, grid, kappa)[0] + travel)
+    if best is not None:
+        room = best[1] - gap - front
+        if plan_s[-1] > max(room, 0.0):
+            capped = np.minimum(capped, stop_profile(plan_s, v0, room, dt))
+    if (capped >= plan_s).all():
         return ones
-    room = best[1] - gap - (EGO_CENTRE_OFFSET + EGO_LENGTH / 2)
-    steps = np.linalg.norm(
-        np.diff(np.concatenate([np.zeros((1, 2)), poses[:, :2]]), axis=0), axis=1
-    )
-    plan_s = np.cumsum(steps)
-    if plan_s[-1] <= max(room, 0.0):
-        return ones
-    capped = stop_profile(plan_s, v0, room, dt)
     return np.where(plan_s > 1e-6, capped / np.maximum(plan_s, 1e-6), 1.0)
 
 
@@ -220,6 +273,7 @@ def stop_behind_leaders(
     history_poses: torch.Tensor,
     grid: GridSpec,
     dt: float = KEYFRAME_DT,
+    entering: bool = False,
 ) -> torch.Tensor:
     """Each plan of a batch stopped behind its leader coming to a stop
     (:func:`leader_stop_factors`, tracked on the CPU), the rest unchanged.
@@ -230,6 +284,7 @@ def stop_behind_leaders(
         history_poses: [B, H, 3] their poses in the current ego frame.
         grid: the occupancy grid.
         dt: seconds between frames.
+        entering: also slow for road users foreseen to enter the corridor.
 
     Returns:
         [B, S, 3] on ``poses``' device and dtype; a plan the rule does not stop is returned
@@ -241,7 +296,7 @@ def stop_behind_leaders(
     factors = []
     for i in range(occ.shape[0]):
         tracks = track_movers(occ[i], hp[i], grid, dt)
-        factors.append(leader_stop_factors(plans[i], tracks, hp[i], grid, dt))
+        factors.append(leader_stop_factors(plans[i], tracks, hp[i], grid, dt, entering=entering))
     f = torch.as_tensor(np.stack(factors), dtype=poses.dtype, device=poses.device)
     keep = (f == 1.0).all(dim=-1)[:, None, None]  # plans the rule leaves alone: bit for bit
     return torch.where(keep, poses, retime_along_path(poses, f))

@@ -151,6 +151,97 @@ def test_a_plan_stops_behind_a_lead_car_braking_hard_and_nothing_else_changes():
     np.testing.assert_array_equal(stop_profile(np.ones(3), 5.0, -1.0, 0.5), 0.0)
 
 
+def _mover(centroid, velocity, half_length=2.3, cls=None):
+    """A road user at ``centroid`` that moved at a constant ``velocity`` [2] m/s over the 2 s
+    history; its cells span ``half_length`` either side along x (one cell: a pedestrian)."""
+    import numpy as np
+
+    from renderworld.world.tracks import MoverTrack
+    from tests.world.test_movers import CAR
+
+    t = np.array([0.0, -0.5, -1.0, -1.5, -2.0])
+    cents = np.asarray(centroid, float)[None] + t[:, None] * np.asarray(velocity, float)[None]
+    cells = np.zeros(GRID.shape[:2], bool)
+    iy = int((centroid[1] - GRID.range_min[1]) // 1.6)
+    for xx in np.arange(centroid[0] - half_length + 0.8, centroid[0] + half_length, 1.6):
+        cells[int((xx - GRID.range_min[0]) // 1.6), iy] = True
+    vel = np.asarray(velocity, float)
+    return MoverTrack(CAR if cls is None else cls, cells, np.asarray(centroid, float), t, cents,
+                      vel, True)  # fmt: skip
+
+
+def test_a_car_crossing_or_coming_the_other_way_is_no_leader_that_stood():
+    import numpy as np
+
+    from renderworld.world.pose_retime import leader_stop_factors
+
+    hist = np.stack([10.0 * np.arange(-4, 1) * 0.5, np.zeros(5), np.zeros(5)], 1)
+    plan = np.stack([10.0 * np.arange(1, 7) * 0.5, np.zeros(6), np.zeros(6)], 1)
+    crossing = _mover((14.0, 0.5), (0.0, 8.0))  # across the lane ahead at 8 m/s
+    oncoming = _mover((20.0, 0.5), (-9.0, 0.0))
+    for other in (crossing, oncoming):
+        np.testing.assert_array_equal(leader_stop_factors(plan, [other], hist, GRID), 1.0)
+
+
+def test_a_plan_slows_for_a_car_cutting_in_and_stops_for_a_pedestrian_stepping_in():
+    import numpy as np
+
+    from renderworld.constants import EGO_CENTRE_OFFSET, EGO_LENGTH
+    from renderworld.world.pose_retime import leader_stop_factors, stop_profile
+    from tests.world.test_movers import PED
+
+    front = EGO_CENTRE_OFFSET + EGO_LENGTH / 2
+    hist = np.stack([10.0 * np.arange(-4, 1) * 0.5, np.zeros(5), np.zeros(5)], 1)  # 10 m/s
+    plan = np.stack([10.0 * np.arange(1, 7) * 0.5, np.zeros(6), np.zeros(6)], 1)
+    # A car 14 m ahead in the next lane (3.2 m left) at 5 m/s, drifting in at 1 m/s: its
+    # centroid enters the corridor (2 m to each side) after 1.25 s, 20.25 m ahead.
+    cut_in = _mover((14.0, 3.2), (5.0, -1.0))
+    rear = cut_in.cells.nonzero()[0].min() * 1.6 + GRID.range_min[0]
+    f = leader_stop_factors(plan, [cut_in], hist, GRID, entering=True)
+    room = rear - 2.0 - front  # behind its rear, moving on at 5 m/s: the ego slows to 5 m/s
+    np.testing.assert_allclose(f * plan[:, 0], stop_profile(plan[:, 0], 10.0, room, 0.5, 5.0))
+    s = f * plan[:, 0]
+    assert (f < 1).any() and np.all(np.diff(s) >= -1e-9)
+    assert s[-1] - s[-2] == pytest.approx(2.5)  # 5 m/s in the last half second
+    np.testing.assert_array_equal(leader_stop_factors(plan, [cut_in], hist, GRID), 1.0)  # off
+    # A pedestrian 18 m ahead walking in from the kerb at 1.4 m/s: the plan stops before it.
+    ped = _mover((18.0, -3.5), (0.0, 1.4), half_length=0.8, cls=PED)
+    s = leader_stop_factors(plan, [ped], hist, GRID, entering=True) * plan[:, 0]
+    ped_rear = ped.cells.nonzero()[0].min() * 1.6 + GRID.range_min[0]
+    assert s[-1] == pytest.approx(ped_rear - 2.0 - front, abs=1e-6)
+    # The same car driving on in its own lane, one cutting in behind the ego, one faster than
+    # the ego, a pedestrian walking along the kerb: nothing changes.
+    parallel = _mover((14.0, 3.2), (5.0, 0.0))
+    behind = _mover((-8.0, 3.2), (5.0, -1.0))
+    faster = _mover((14.0, 3.2), (14.0, -1.0))
+    along = _mover((18.0, -3.5), (1.4, 0.0), half_length=0.8, cls=PED)
+    # One stepping in 6 m ahead in 1.5 s: the ego (10 m/s) is past it by then, so it goes first.
+    passed = _mover((6.0, -3.5), (0.0, 1.4), half_length=0.8, cls=PED)
+    for other in (parallel, behind, faster, along, passed):
+        f = leader_stop_factors(plan, [other], hist, GRID, entering=True)
+        np.testing.assert_array_equal(f, 1.0)
+
+
+def test_a_stop_profile_behind_a_moving_leader_ends_at_its_speed():
+    import numpy as np
+
+    from renderworld.world.pose_retime import stop_profile
+
+    plan = 10.0 * np.arange(1, 7) * 0.5
+    # 8 m of room behind a leader at 6 m/s: (10 - 6)² / 16 = 1 m/s² down to 6 m/s by 4 s.
+    s = stop_profile(plan, 10.0, 8.0, 0.5, 6.0)
+    t = np.arange(1, 7) * 0.5
+    np.testing.assert_allclose(s, 10.0 * t - 0.5 * t * t)
+    # Slower than the leader, or no room: the ego keeps behind the leader's motion.
+    np.testing.assert_allclose(stop_profile(plan, 4.0, 3.0, 0.5, 6.0), np.minimum(plan, 3 + 6 * t))
+    np.testing.assert_allclose(stop_profile(plan, 10.0, -2.0, 0.5, 6.0), np.maximum(6 * t - 2, 0))
+    # With a leader that stands it is the stop of before.
+    np.testing.assert_array_equal(
+        stop_profile(plan, 10.0, 8.0, 0.5, 0.0),
+        np.minimum(plan, np.where(t < 1.6, 10 * t - 3.125 * t * t, 8)),
+    )
+
+
 def test_the_world_model_stops_its_plan_at_prediction_time_only():
     import numpy as np
 
