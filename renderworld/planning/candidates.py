@@ -149,6 +149,10 @@ class CheckConfig:
             where the leader of now would stop had it braked at this rate from now (its worst
             case, as the responsibility-sensitive safety distance has it). Off: fewer open-loop
             collisions with a braking lead car, more L2, the closed loop unchanged (docs).
+        leader_stop_cap: every candidate stays within the world model's stop behind a leader
+            that brakes hard or has come to a stand
+            (:func:`~renderworld.planning.checked.cap_behind_leader`), not only the learned plan:
+            an IDM run that trusts the forecast's late braking does not drive past it.
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -199,6 +203,7 @@ class CheckConfig:
     pass_parked_s: float = 1.0
     pass_range_s: float = 5.0
     lead_brake_decel: float | None = None
+    leader_stop_cap: bool = True
 
 
 def check_config(overrides, name: str = "check") -> CheckConfig:

@@ -35,10 +35,12 @@ from renderworld.planning.scene import (
     constant_velocity_displacements,
     forecast_scene,
 )
+from renderworld.world.pose_retime import leader_stop_room, stop_profile
 
 __all__ = [
     "CheckedPlan",
     "blend_with_previous",
+    "cap_behind_leader",
     "check_plan",
     "continue_lateral_accel",
     "current_speed",
@@ -210,6 +212,27 @@ def _with_steady_path(cands, plan, past, speed, scene, cfg, dt, cruise_speed):
     )
 
 
+def cap_behind_leader(
+    waypoints: np.ndarray, tracks: list, history_poses: np.ndarray, grid: GridSpec, dt: float
+) -> np.ndarray:
+    """[N, S, 2] the candidates' waypoints, each kept along its own path within the stop behind
+    a leader coming to a stop (:func:`~renderworld.world.pose_retime.leader_stop_room`,
+    :func:`~renderworld.world.pose_retime.stop_profile` from the ego's speed now); unchanged,
+    bit for bit, where there is no such leader or a candidate stays short of it."""
+    room = leader_stop_room(tracks, history_poses, grid)
+    if room is None:
+        return waypoints
+    v0 = float(np.hypot(*(history_poses[-1, :2] - history_poses[-2, :2]))) / dt
+    out = waypoints.copy()
+    for i, wp in enumerate(waypoints):
+        pts = np.concatenate([np.zeros((1, 2)), wp])
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+        capped = stop_profile(s[1:], v0, room, dt)
+        if (capped < s[1:] - 1e-9).any():
+            out[i] = np.stack([np.interp(capped, s, pts[:, k]) for k in (0, 1)], -1)
+    return out
+
+
 def current_speed(history_poses: np.ndarray, dt: float = KEYFRAME_DT) -> float:
     """The ego's speed now (m/s): :func:`past_states`' last speed."""
     return float(past_states(history_poses, dt, seconds=0.0)[-1, 3])
@@ -273,6 +296,8 @@ def check_plan(
         step = int(round(dt / 0.1))
         accel = lateral_accel_now(hist, float(past[-1 - step, 3]), dt) if len(past) > step else 0.0
         cands.waypoints = continue_lateral_accel(cands.waypoints, accel, dt, cfg.continuous_ease)
+    if cfg.leader_stop_cap:
+        cands.waypoints = cap_behind_leader(cands.waypoints, scene.tracks, hist, grid, dt)
     t2 = time.perf_counter()
     scores = score_candidates(cands, scene, past, cfg, limits, dt, previous)
     t3 = time.perf_counter()

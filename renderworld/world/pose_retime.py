@@ -9,7 +9,8 @@ polyline. The path's shape, and so the headings the forecast's warp depends on, 
 
 :func:`stop_behind_leaders` is the same retiming by a rule instead of a network: where the car
 ahead in the corridor brakes hard or has come to a stand, the plan stops behind it at constant
-deceleration (``PoseWarpWorldModel(leader_stop=True)``, at prediction time only).
+deceleration (``PoseWarpWorldModel(leader_stop=True)``, at prediction time only); with
+``entering`` it also slows for road users foreseen to enter the corridor ahead of the ego.
 
 Poses are (x, y, yaw) in the current ego frame (metres, radians); the path starts at the origin.
 """
@@ -35,6 +36,7 @@ from renderworld.world.tracks import MoverTrack, fit_velocity, track_movers
 __all__ = [
     "LeaderRetiming",
     "leader_stop_factors",
+    "leader_stop_room",
     "retime_along_path",
     "stop_behind_leaders",
     "stop_profile",
@@ -177,68 +179,36 @@ def _entering(tr: MoverTrack, kappa: float) -> tuple[float, float, float] | None
     return float(steps[inside[0]]), s_e, max(float(v @ (np.cos(head), np.sin(head))), 0.0)
 
 
-def leader_stop_factors(
-    poses: np.ndarray,
+def leader_stop_room(
     tracks: list[MoverTrack],
     history_poses: np.ndarray,
     grid: GridSpec,
-    dt: float = KEYFRAME_DT,
     gap: float = 2.0,
     min_decel: float = 2.0,
-    entering: bool = False,
-) -> np.ndarray:
-    """[S] progress factors that stop the plan behind a leader coming to a stop (1: no change).
+) -> float | None:
+    """How far along its path (m) the ego may go behind a leader coming to a stop, or None.
 
     The leader is the nearest road user in the corridor (that of
     :func:`~renderworld.world.pose_agents.leader_row`) that moved over the history and now
     brakes at ``min_decel`` m/s² or more (a quadratic fit of its last 1.5 s along the path) or
     has come to a stand (under 0.5 m/s in any direction) after moving at over 2 m/s (its
-    whole-history speed). It is taken to stop at that rate; when the plan would run past ``gap``
-    metres behind where its rear then is, the plan is retimed to a constant-deceleration stop
-    there from the ego's speed now (metres from the ego's front bumper; the ego stands where
-    there is no room). With ``entering``, also each moving road user that its last second's
-    velocity carries into the corridor within 3 s (a car cutting in, a pedestrian stepping off
-    the kerb) is taken to go on along the path at its speed along it from there (0 for one
-    crossing); where the plan reaches the place after it (the ego's front bumper short of its rear
-    when it enters) and would come within ``gap`` of its rear from then on, the plan is retimed
-    to slow uniformly to that speed ``gap`` behind it (:func:`stop_profile`). One the ego passes
-    first is left to it.
+    whole-history speed). It is taken to stop at that rate; the room ends ``gap`` metres behind
+    where its rear then is, less the ego's front overhang (negative: no room).
 
     Args:
-        poses: [S, 3] the plan, current ego frame.
         tracks: :func:`~renderworld.world.tracks.track_movers` of the history.
-        history_poses: [H, 3] the history poses.
+        history_poses: [H, 3] the history poses, current ego frame.
         grid: the occupancy grid (cell sizes).
-        dt: seconds between frames.
         gap: metres left between the ego's front bumper and the leader's rear.
         min_decel: the least braking (m/s²) that makes a moving leader one.
-        entering: also slow for road users foreseen to enter the corridor.
     """
-    ones = np.ones(len(poses))
-    hist = np.asarray(history_poses, dtype=np.float64)
-    kappa = path_curvature(hist)
-    v0 = float(np.hypot(*(hist[-1, :2] - hist[-2, :2]))) / dt
-    steps = np.linalg.norm(
-        np.diff(np.concatenate([np.zeros((1, 2)), poses[:, :2]]), axis=0), axis=1
-    )
-    plan_s = np.cumsum(steps)
-    t = (np.arange(len(poses)) + 1) * dt
-    front = EGO_CENTRE_OFFSET + EGO_LENGTH / 2
-    best, capped = None, plan_s
+    kappa = path_curvature(np.asarray(history_poses, dtype=np.float64))
+    best = None
     for tr in tracks:
         if not tr.moving:
             continue
         s, lat = (float(v) for v in corridor_coords(np.asarray(tr.centroid, float), kappa))
         if not (0.0 < s <= CORRIDOR_AHEAD_M and abs(lat) < CORRIDOR_HALF_M):
-            hit = _entering(tr, kappa) if entering and s > 0.0 else None
-            if hit is not None:
-                t_e, s_e, v_u = hit
-                first, last = _extent_along(tr, grid, kappa)
-                room = s_e - v_u * t_e - (s - first) - gap - front  # its rear, moved back to now
-                after = t >= t_e - 1e-6
-                second = np.interp(t_e, np.r_[0.0, t], np.r_[0.0, plan_s]) <= room + v_u * t_e + gap
-                if second and (plan_s[after] > room + v_u * t[after]).any():
-                    capped = np.minimum(capped, stop_profile(plan_s, v0, room, dt, v_u))
             continue
         if best is not None and s >= best[0]:
             continue
@@ -258,12 +228,69 @@ def leader_stop_factors(
         else:
             continue
         best = (s, _extent_along(tr, grid, kappa)[0] + travel)
-    if best is not None:
-        room = best[1] - gap - front
-        if plan_s[-1] > max(room, 0.0):
-            capped = np.minimum(capped, stop_profile(plan_s, v0, room, dt))
+    return None if best is None else best[1] - gap - (EGO_CENTRE_OFFSET + EGO_LENGTH / 2)
+
+
+def leader_stop_factors(
+    poses: np.ndarray,
+    tracks: list[MoverTrack],
+    history_poses: np.ndarray,
+    grid: GridSpec,
+    dt: float = KEYFRAME_DT,
+    gap: float = 2.0,
+    min_decel: float = 2.0,
+    entering: bool = False,
+) -> np.ndarray:
+    """[S] progress factors that stop the plan behind a leader coming to a stop (1: no change).
+
+    When the plan would run past the :func:`leader_stop_room`, it is retimed to a
+    constant-deceleration stop there from the ego's speed now (the ego stands where there is no
+    room). With ``entering``, also each moving road user that its last second's velocity
+    carries into the corridor within 3 s (a car cutting in, a pedestrian stepping off the kerb)
+    is taken to go on along the path at its speed along it from there (0 for one crossing);
+    where the plan reaches the place after it (the ego's front bumper short of its rear when it
+    enters) and would come within ``gap`` of its rear from then on, the plan is retimed to slow
+    uniformly to that speed ``gap`` behind it (:func:`stop_profile`). One the ego passes first
+    is left to it.
+
+    Args:
+        poses: [S, 3] the plan, current ego frame.
+        tracks: :func:`~renderworld.world.tracks.track_movers` of the history.
+        history_poses: [H, 3] the history poses.
+        grid: the occupancy grid (cell sizes).
+        dt: seconds between frames.
+        gap: metres left between the ego's front bumper and the leader's rear.
+        min_decel: the least braking (m/s²) that makes a moving leader one.
+        entering: also slow for road users foreseen to enter the corridor.
+    """
+    hist = np.asarray(history_poses, dtype=np.float64)
+    kappa = path_curvature(hist)
+    v0 = float(np.hypot(*(hist[-1, :2] - hist[-2, :2]))) / dt
+    steps = np.linalg.norm(
+        np.diff(np.concatenate([np.zeros((1, 2)), poses[:, :2]]), axis=0), axis=1
+    )
+    plan_s = np.cumsum(steps)
+    t = (np.arange(len(poses)) + 1) * dt
+    front = EGO_CENTRE_OFFSET + EGO_LENGTH / 2
+    capped = plan_s
+    for tr in tracks if entering else ():
+        s, lat = (float(v) for v in corridor_coords(np.asarray(tr.centroid, float), kappa))
+        if not tr.moving or s <= 0.0 or (s <= CORRIDOR_AHEAD_M and abs(lat) < CORRIDOR_HALF_M):
+            continue
+        hit = _entering(tr, kappa)
+        if hit is None:
+            continue
+        t_e, s_e, v_u = hit
+        room = s_e - v_u * t_e - (s - _extent_along(tr, grid, kappa)[0]) - gap - front
+        after = t >= t_e - 1e-6
+        second = np.interp(t_e, np.r_[0.0, t], np.r_[0.0, plan_s]) <= room + v_u * t_e + gap
+        if second and (plan_s[after] > room + v_u * t[after]).any():
+            capped = np.minimum(capped, stop_profile(plan_s, v0, room, dt, v_u))
+    room = leader_stop_room(tracks, hist, grid, gap, min_decel)
+    if room is not None and plan_s[-1] > max(room, 0.0):
+        capped = np.minimum(capped, stop_profile(plan_s, v0, room, dt))
     if (capped >= plan_s).all():
-        return ones
+        return np.ones(len(poses))
     return np.where(plan_s > 1e-6, capped / np.maximum(plan_s, 1e-6), 1.0)
 
 

@@ -145,11 +145,12 @@ def test_idm_plus_does_not_brake_at_its_speed_behind_a_car_pulling_away():
 def test_cap_coolness_softens_the_plans_hold_back_only():
     # The car at 8 m/s cutting in 8 m ahead (above): the learned plan held back by plain IDM
     # brakes beyond NAVSIM's comfort bound in its first half second; held back by the ACC model
-    # it brakes within it, and the IDM candidates beside it are the same either way.
+    # it brakes within it, and the IDM candidates beside it are the same either way (the
+    # leader-stop cap off: the quantised track of this steady car reads as braking hard).
     car = (CAR, lambda t: (FRONT + 8.0 + 8.0 * t, -0.8), (3, 2))
     occ, poses = history([car])
     plan = straight_plan()
-    cfg = CheckConfig(steady_path=False, continuous_start=False)
+    cfg = CheckConfig(steady_path=False, continuous_start=False, leader_stop_cap=False)
     plain = check_plan(occ, poses, plan, GRID, cfg).candidates
     cool = check_plan(occ, poses, plan, GRID, replace(cfg, cap_coolness=0.99)).candidates
 
