@@ -25,6 +25,7 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
+import torch
 
 from renderworld.constants import KEYFRAME_DT, GridSpec
 from renderworld.planning.candidates import Candidates, CheckConfig, make_candidates
@@ -35,7 +36,12 @@ from renderworld.planning.scene import (
     constant_velocity_displacements,
     forecast_scene,
 )
-from renderworld.world.pose_retime import leader_stop_room, stop_profile
+from renderworld.world.pose_retime import (
+    last_step_speed,
+    leader_stop_room,
+    retime_along_path,
+    stop_profile,
+)
 
 __all__ = [
     "CheckedPlan",
@@ -215,21 +221,24 @@ def _with_steady_path(cands, plan, past, speed, scene, cfg, dt, cruise_speed):
 def cap_behind_leader(
     waypoints: np.ndarray, tracks: list, history_poses: np.ndarray, grid: GridSpec, dt: float
 ) -> np.ndarray:
-    """[N, S, 2] the candidates' waypoints, each kept along its own path within the stop behind
-    a leader coming to a stop (:func:`~renderworld.world.pose_retime.leader_stop_room`,
+    """[N, S, 2] the candidates' waypoints, each retimed along its own path
+    (:func:`~renderworld.world.pose_retime.retime_along_path`) to stay within the stop behind a
+    leader coming to a stop (:func:`~renderworld.world.pose_retime.leader_stop_room`,
     :func:`~renderworld.world.pose_retime.stop_profile` from the ego's speed now); unchanged,
     bit for bit, where there is no such leader or a candidate stays short of it."""
     room = leader_stop_room(tracks, history_poses, grid)
     if room is None:
         return waypoints
-    v0 = float(np.hypot(*(history_poses[-1, :2] - history_poses[-2, :2]))) / dt
+    v0 = last_step_speed(history_poses, dt)
+    s = np.cumsum(np.linalg.norm(np.diff(waypoints, axis=1, prepend=0.0), axis=-1), axis=-1)
+    capped = np.stack([stop_profile(si, v0, room, dt) for si in s])
+    past = (capped < s - 1e-9).any(axis=-1)
+    if not past.any():
+        return waypoints
+    poses = np.concatenate([waypoints[past], np.zeros((*waypoints[past].shape[:-1], 1))], -1)
+    f = np.where(s[past] > 1e-6, capped[past] / np.maximum(s[past], 1e-6), 1.0)
     out = waypoints.copy()
-    for i, wp in enumerate(waypoints):
-        pts = np.concatenate([np.zeros((1, 2)), wp])
-        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-        capped = stop_profile(s[1:], v0, room, dt)
-        if (capped < s[1:] - 1e-9).any():
-            out[i] = np.stack([np.interp(capped, s, pts[:, k]) for k in (0, 1)], -1)
+    out[past] = retime_along_path(torch.from_numpy(poses), torch.from_numpy(f))[..., :2].numpy()
     return out
 
 

@@ -35,6 +35,7 @@ from renderworld.world.tracks import MoverTrack, fit_velocity, track_movers
 
 __all__ = [
     "LeaderRetiming",
+    "last_step_speed",
     "leader_stop_factors",
     "leader_stop_room",
     "retime_along_path",
@@ -179,6 +180,12 @@ def _entering(tr: MoverTrack, kappa: float) -> tuple[float, float, float] | None
     return float(steps[inside[0]]), s_e, max(float(v @ (np.cos(head), np.sin(head))), 0.0)
 
 
+def last_step_speed(history_poses: np.ndarray, dt: float = KEYFRAME_DT) -> float:
+    """The ego's speed over its last history step (m/s), the speed the stop starts from."""
+    hist = np.asarray(history_poses, dtype=np.float64)
+    return float(np.hypot(*(hist[-1, :2] - hist[-2, :2]))) / dt
+
+
 def leader_stop_room(
     tracks: list[MoverTrack],
     history_poses: np.ndarray,
@@ -265,7 +272,7 @@ def leader_stop_factors(
     """
     hist = np.asarray(history_poses, dtype=np.float64)
     kappa = path_curvature(hist)
-    v0 = float(np.hypot(*(hist[-1, :2] - hist[-2, :2]))) / dt
+    v0 = last_step_speed(hist, dt)
     steps = np.linalg.norm(
         np.diff(np.concatenate([np.zeros((1, 2)), poses[:, :2]]), axis=0), axis=1
     )
