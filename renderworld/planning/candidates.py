@@ -153,6 +153,11 @@ class CheckConfig:
             that brakes hard or has come to a stand
             (:func:`~renderworld.planning.checked.cap_behind_leader`), not only the learned plan:
             an IDM run that trusts the forecast's late braking does not drive past it.
+        hold_if_unsafe: the learned plan is held back by IDM only where, as learned, it meets
+            a forecast obstacle or breaches time to collision: a leader that the plan's path
+            leaves (a lane change past a slower car) does not slow it.
+        hold_behind_movers: ... and is then still held back behind the moving road users, whose
+            forecast may be wrong, not behind what stands (:mod:`renderworld.planning.hold`).
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -204,6 +209,8 @@ class CheckConfig:
     pass_range_s: float = 5.0
     lead_brake_decel: float | None = None
     leader_stop_cap: bool = True
+    hold_if_unsafe: bool = False
+    hold_behind_movers: bool = False
 
 
 def check_config(overrides, name: str = "check") -> CheckConfig:

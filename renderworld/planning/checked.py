@@ -30,6 +30,7 @@ import torch
 from renderworld.constants import KEYFRAME_DT, GridSpec
 from renderworld.planning.candidates import Candidates, CheckConfig, make_candidates
 from renderworld.planning.check import CandidateScores, score_candidates
+from renderworld.planning.hold import unhold_if_safe
 from renderworld.planning.kinematics import KinematicLimits
 from renderworld.planning.scene import (
     MoverForecaster,
@@ -301,12 +302,21 @@ def check_plan(
     cands = make_candidates(plan[:, :2], plan[:, 2], speed, scene, cfg, dt, cruise_speed)
     if cfg.steady_path:
         cands = _with_steady_path(cands, plan, past, speed, scene, cfg, dt, cruise_speed)
+    accel = None
     if cfg.continuous_start and speed > cfg.continuous_min_speed:
         step = int(round(dt / 0.1))
         accel = lateral_accel_now(hist, float(past[-1 - step, 3]), dt) if len(past) > step else 0.0
-        cands.waypoints = continue_lateral_accel(cands.waypoints, accel, dt, cfg.continuous_ease)
-    if cfg.leader_stop_cap:
-        cands.waypoints = cap_behind_leader(cands.waypoints, scene.tracks, hist, grid, dt)
+
+    def start(wp):  # every candidate's start and the leader-stop cap
+        if accel is not None:
+            wp = continue_lateral_accel(wp, accel, dt, cfg.continuous_ease)
+        if cfg.leader_stop_cap:
+            wp = cap_behind_leader(wp, scene.tracks, hist, grid, dt)
+        return wp
+
+    cands.waypoints = start(cands.waypoints)
+    if cfg.hold_if_unsafe:
+        unhold_if_safe(cands, plan, speed, past, scene, cfg, start, limits, dt, previous)
     t2 = time.perf_counter()
     scores = score_candidates(cands, scene, past, cfg, limits, dt, previous)
     t3 = time.perf_counter()

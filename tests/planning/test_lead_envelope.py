@@ -72,3 +72,61 @@ def test_with_the_leader_stop_cap_no_candidate_runs_past_a_braking_leaders_stop(
     wp = np.stack([plan[:, :2], plan[:, :2] * 0.5])
     tracks0 = forecast_scene(occ0, poses0, GRID, 6).tracks
     assert cap_behind_leader(wp, tracks0, poses0, GRID, DT) is wp
+
+
+def _lane_change_past_a_slower_car():
+    """History and plan: a car 7 m ahead in the ego's lane at 7 m/s; the plan changes lane to
+    the left over 3 s."""
+    car = (CAR, lambda t: (7.0 + 7.0 * t, -1.6), (3, 2))
+    occ, poses = history([car], road_half_width=6.0)
+    t = np.arange(1, 7) * DT
+    u = t / 3.0
+    plan = np.stack([V * t, 3.5 * u * u * (3 - 2 * u), np.zeros(6)], 1)
+    plan[:, 2] = np.arctan2(np.gradient(plan[:, 1]), np.gradient(plan[:, 0]))
+    return occ, poses, plan
+
+
+def test_hold_if_unsafe_drives_a_lane_change_past_a_slower_car_as_learned():
+    from renderworld.planning.checked import check_plan
+
+    occ, poses, plan = _lane_change_past_a_slower_car()
+    held = check_plan(occ, poses, plan, GRID, CheckConfig())
+    kept = check_plan(occ, poses, plan, GRID, CheckConfig(hold_if_unsafe=True))
+    # Held back behind the car its path leaves, the plan is replaced by another candidate.
+    assert np.abs(held.trajectory - plan[:, :2]).max() > 2.0
+    # As learned it meets nothing in the forecast and keeps time to collision: it is driven.
+    c = kept.candidates
+    assert c.best == 0 and c.NC[0] == 1 and c.TTC[0] == 1
+    np.testing.assert_allclose(kept.trajectory[1:], plan[1:, :2], atol=1e-5)
+
+
+def test_hold_if_unsafe_still_holds_a_plan_that_would_hit_a_standing_car():
+    from renderworld.planning.checked import check_plan
+
+    car = (CAR, lambda t: (28.0, -2.4), (3, 3))  # blocks the road 28 m ahead
+    occ, poses = history([car], road_half_width=3.5)
+    plan = straight_plan()
+    out = check_plan(occ, poses, plan, GRID, CheckConfig(hold_if_unsafe=True))
+    c = out.candidates
+    assert c.waypoints[0, -1, 0] < plan[-1, 0] - 5.0  # its own candidate held back behind it
+    assert c.NC[c.best] == 1
+
+
+def test_hold_behind_movers_still_holds_the_plan_behind_a_moving_car():
+    from renderworld.planning.checked import check_plan
+    from renderworld.planning.hold import moving_points
+    from renderworld.planning.scene import forecast_scene
+
+    occ, poses, plan = _lane_change_past_a_slower_car()
+    assert moving_points(forecast_scene(occ, poses, GRID, 6)).any()
+    held = check_plan(occ, poses, plan, GRID, CheckConfig())
+    movers = check_plan(occ, poses, plan, GRID,
+                        CheckConfig(hold_if_unsafe=True, hold_behind_movers=True))  # fmt: skip
+    # The car moves: its forecast may be wrong, so the headway behind it stays.
+    np.testing.assert_allclose(movers.candidates.waypoints[0], held.candidates.waypoints[0],
+                               atol=1e-6)  # fmt: skip
+    np.testing.assert_allclose(movers.trajectory, held.trajectory, atol=1e-6)
+    # A parked car stands: none of its points is a moving one.
+    parked = (CAR, lambda t: (28.0, -2.4), (3, 3))
+    occ2, poses2 = history([parked], road_half_width=3.5)
+    assert not moving_points(forecast_scene(occ2, poses2, GRID, 6)).any()
