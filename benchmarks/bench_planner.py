@@ -86,12 +86,14 @@ from renderworld.bench.planner_latency import (  # noqa: E402
     session_runner,
 )
 from renderworld.planning import Planner, PlannerSession, PlanRequest  # noqa: E402
+from renderworld.world.tracks import clear_track_cache  # noqa: E402
 
 DEMO = Path("outputs/demo")
 STAGES = ("encode", "world_model", "decode")
 
 
 def _run_today(planner: Planner, req: PlanRequest, _session) -> dict:
+    clear_track_cache()  # as session_runner: each plan tracks its history once
     t0 = time.perf_counter()
     res = planner.plan(req)
     return {**res.timings, "wall": 1e3 * (time.perf_counter() - t0)}

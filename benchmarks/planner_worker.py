@@ -154,12 +154,17 @@ def main() -> None:
             return s.plan(req.ego_displacements, req.command, forecast=forecast, **extra)
 
         runs[mode] = run
+    try:  # each plan tracks its history once, as a new history would (no cache before it)
+        from renderworld.world.tracks import clear_track_cache
+    except ImportError:
+        clear_track_cache = lambda: None  # noqa: E731
     print("ready", flush=True)
     for line in sys.stdin:
         if line.strip() != "go":
             break
         out = {}
         for mode, run in runs.items():
+            clear_track_cache()
             t0 = time.perf_counter()
             res = run()
             wall = 1e3 * (time.perf_counter() - t0)

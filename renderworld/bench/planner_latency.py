@@ -26,6 +26,7 @@ from renderworld.constants import COMMANDS, FREE_ID, HISTORY_FRAMES
 from renderworld.planning import Planner, PlannerSession, PlanRequest, PlanResult, load_planner
 from renderworld.tokenizer import TokenizerConfig, build_tokenizer
 from renderworld.world import WorldModel, WorldModelConfig
+from renderworld.world.tracks import clear_track_cache
 
 __all__ = [
     "cpu_seconds",
@@ -125,6 +126,7 @@ def session_runner(
     ``PlanResult.timings`` + ``wall`` (ms) + ``result``."""
 
     def run(planner: Planner, req: PlanRequest, session: PlannerSession) -> dict:
+        clear_track_cache()  # each plan tracks its history once, as a new history would
         t0 = time.perf_counter()
         session.push(req.occupancy[-1])
         res = session.plan(req.ego_displacements, req.command, forecast, req.ego_yaws, check)

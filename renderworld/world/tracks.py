@@ -26,10 +26,17 @@ its pose, so the ego's own motion is compensated:
   the coarse grid, so it moves; a shift measured over one second (lag 2) would have frozen it.
 
 Frames: the current ego frame (x forward, y left; metres, seconds). Inputs are numpy arrays.
+
+A plan tracks one history several times (the world model's stop rule, its mover forecast, the
+forecast check): :func:`track_movers` keeps the tracks of the last :data:`CACHE_SIZE` histories,
+keyed by their content, and gives the same (read-only) tracks back for the same history.
 """
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,7 +48,9 @@ __all__ = [
     "GATE_M",
     "GATE_SPEED_MPS",
     "SPLIT_SPEED_MPS",
+    "CACHE_SIZE",
     "MoverTrack",
+    "clear_track_cache",
     "fit_velocity",
     "track_movers",
 ]
@@ -155,6 +164,37 @@ def fit_velocity(times: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return (t[:, None] * (xy - xy.mean(0))).sum(0) / float((t * t).sum())
 
 
+#: Histories whose tracks :func:`track_movers` keeps.
+CACHE_SIZE = 4
+_CACHE: OrderedDict = OrderedDict()
+_LOCK = threading.Lock()
+
+
+def clear_track_cache() -> None:
+    """Forget every kept track set (a benchmark that plans one history again and again clears
+    it before each plan, so that each pays its first tracking, as a car's next history does)."""
+    with _LOCK:
+        _CACHE.clear()
+
+
+def _cache_key(occ: np.ndarray, poses: np.ndarray, *args) -> tuple:
+    """The history's content (labels as uint8 where they fit, whatever their dtype) and the
+    other arguments."""
+    if occ.dtype != np.uint8 and occ.size and occ.min() >= 0 and occ.max() <= 255:
+        occ = occ.astype(np.uint8)
+    h = hashlib.blake2b(digest_size=16)
+    for part in (occ.dtype.str, occ.shape, np.ascontiguousarray(occ), poses):
+        h.update(part.tobytes() if isinstance(part, np.ndarray) else str(part).encode())
+    return (h.digest(), *args)
+
+
+def _frozen(tracks: list[MoverTrack]) -> list[MoverTrack]:
+    for tr in tracks:
+        for a in (tr.cells, tr.centroid, tr.times, tr.centroids, tr.velocity):
+            a.setflags(write=False)
+    return tracks
+
+
 def track_movers(
     history_occupancy: np.ndarray,
     history_poses: np.ndarray,
@@ -178,7 +218,8 @@ def track_movers(
 
     Returns:
         One :class:`MoverTrack` per movable component of the current frame, in
-        :func:`~renderworld.world.movers.bev_components` order.
+        :func:`~renderworld.world.movers.bev_components` order; its arrays are read-only (the
+        same tracks are given back for the same history, module docstring).
 
     Raises:
         ValueError: naming the argument on a shape mismatch.
@@ -192,6 +233,22 @@ def track_movers(
     t_n = occ.shape[0]
     if poses.shape != (t_n, 3):
         raise ValueError(f"history_poses: expected [{t_n}, 3], got {poses.shape}")
+    key = _cache_key(occ, poses, grid, float(dt), float(min_shift_voxels), split_speed_mps)
+    with _LOCK:
+        if key in _CACHE:
+            _CACHE.move_to_end(key)
+            return list(_CACHE[key])
+    tracks = _frozen(_track(occ, poses, grid, dt, min_shift_voxels, split_speed_mps))
+    with _LOCK:
+        _CACHE[key] = tracks
+        while len(_CACHE) > CACHE_SIZE:
+            _CACHE.popitem(last=False)
+    return list(tracks)
+
+
+def _track(occ, poses, grid, dt, min_shift_voxels, split_speed_mps) -> list[MoverTrack]:
+    """:func:`track_movers` without the cache (its arguments checked)."""
+    t_n = occ.shape[0]
     frames = [bev_components(occ[k], grid) for k in range(t_n)]
     if split_speed_mps is not None:
         frames = _split_merged(frames, poses, grid, dt, split_speed_mps)
