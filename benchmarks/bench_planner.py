@@ -36,6 +36,9 @@ Modes, all on the same tokenizer and world model weights, one new frame per plan
   models in one run.
 * ``pw checked``: ``pw full`` with ``check=True``: the candidates around the plan tracked and
   scored against the forecast (``renderworld.planning.checked``).
+* ``pw checked traj``: ``pw traj`` with ``check=True``: the checked plan without the occupancy
+  forecast (the check reads the movers' forecast, not the decoded frames): what the closed
+  loop drives.
 
 Cases:
 
@@ -118,7 +121,8 @@ def agreement(models, grid, device: str) -> str:
 
 
 MODES = (
-    "today", "new full", "new traj", "full bf16", "fast plan", "pw full", "pw traj", "pw checked"
+    "today", "new full", "new traj", "full bf16", "fast plan", "pw full", "pw traj", "pw checked",
+    "pw checked traj",
 )  # fmt: skip
 
 
@@ -136,13 +140,14 @@ def bench_case(models, grid, device: str, reps: int, wanted) -> dict[str, dict]:
     }
     modes["fast plan"] = (fast, _run_fast_plan)
     planners = [fast, bf16]
-    if {"pw full", "pw traj", "pw checked"} & set(wanted):
+    if {"pw full", "pw traj", "pw checked", "pw checked traj"} & set(wanted):
         pw = Planner(tok, pose_warp_model(wm), device=device)
         modes.update(
             {
                 "pw full": (pw, session_runner(True)),
                 "pw traj": (pw, session_runner(False)),
                 "pw checked": (pw, session_runner(True, check=True)),  # candidates scored
+                "pw checked traj": (pw, session_runner(False, check=True)),  # no occupancy
             }
         )
         planners.append(pw)
@@ -378,7 +383,7 @@ def main() -> None:
         cases.append(("Occ3D 200x200x16", (200, 200, 16), occ3d_models(), "untrained, paper "
                       "sizes", args.reps_occ3d))  # fmt: skip
     header = (
-        f"{'grid':<18}{'thr':>4}  {'mode':<10}{'encode':>9}{'world':>9}{'decode':>9}"
+        f"{'grid':<18}{'thr':>4}  {'mode':<16}{'encode':>9}{'world':>9}{'decode':>9}"
         f"{'wall':>10}{'plans/s':>9}{'x today':>9}"
     )
     for name, grid, models, source, reps in cases:
@@ -391,7 +396,7 @@ def main() -> None:
             base = res["today"]["wall"]
             for mode, m in res.items():
                 print(
-                    f"{name:<18}{threads:>4}  {mode:<10}{m['encode']:>9.1f}"
+                    f"{name:<18}{threads:>4}  {mode:<16}{m['encode']:>9.1f}"
                     f"{m['world_model']:>9.1f}{m['decode']:>9.1f}{m['wall']:>10.1f}"
                     f"{1e3 / m['wall']:>9.2f}{base / m['wall']:>9.1f}",
                     flush=True,
