@@ -14,6 +14,9 @@ the ground truth of the raw plan, of the plan's candidate and of the chosen one.
 * the ground-truth future scored by the same check, as one more candidate of each window (it
   takes no part in the choice): how often the check would refuse what the logged car did, and
   which sub-score refused it (the comfort quantity named) — the check's false alarms.
+* per scene behaviour (simulated scenes) and for the scenes that add the most L2: windows, the
+  raw and the checked plan's mean L2 at 3 s, the L2 the check adds there (metres, summed over
+  the windows) and the GT-box contacts at 3 s of both.
 
 Score development splits with it, not test splits. ``--check KNOB=VALUE`` sets
 :class:`~renderworld.planning.candidates.CheckConfig` knobs (as ``tools/eval.py check=``).
@@ -44,6 +47,7 @@ from benchmarks.dev_eval import add_eval_args, check_files, evaluate_world_model
 from renderworld.constants import KEYFRAME_DT  # noqa: E402
 from renderworld.metrics import collisions_with_boxes  # noqa: E402
 from renderworld.planning.candidates import Candidates  # noqa: E402
+from renderworld.sim.scene import behaviour_of  # noqa: E402
 
 SUBSCORES = ("NC", "DAC", "EP", "TTC", "C", "score")
 
@@ -78,6 +82,31 @@ def window_record(result, raw: np.ndarray, future: np.ndarray, valid: np.ndarray
 
 def _fails(p: dict) -> list:
     return [k for k in ("NC", "DAC", "TTC", "C") if p[k] < 1] + (["EP"] if p["EP"] < 0.8 else [])
+
+
+def _by_group(full: list[dict], top: int = 5) -> list[str]:
+    """Markdown rows per behaviour and for the ``top`` scenes adding the most L2 (module
+    docstring); none where the records carry no scene."""
+    if not full or "scene" not in full[0]:
+        return []
+    out = []
+    for title, key in (("behaviour", "behaviour"), ("scene", "scene")):
+        groups = defaultdict(list)
+        for r in full:
+            groups[r[key] or "(none)"].append(r)
+        added = {k: sum(r["l2_checked"] - r["l2_raw"] for r in rs) for k, rs in groups.items()}
+        order = sorted(groups, key=lambda k: -added[k])[: None if key == "behaviour" else top]
+        out += ["", f"| {title} | windows | L2 at 3 s raw (m) | checked (m) | L2 added (m, sum) "
+                "| GT-box contacts at 3 s raw / checked |",
+                "|---|---|---|---|---|---|"]  # fmt: skip
+        for k in order:
+            rs = groups[k]
+            hits = (f"{sum(bool(r.get('hit_raw')) for r in rs)} / "
+                    f"{sum(bool(r.get('hit_checked')) for r in rs)}")  # fmt: skip
+            out.append(f"| {k} | {len(rs)} | {np.mean([r['l2_raw'] for r in rs]):.2f} "
+                       f"| {np.mean([r['l2_checked'] for r in rs]):.2f} | {added[k]:.1f} "
+                       f"| {hits} |")  # fmt: skip
+    return out
 
 
 def summary(records: list[dict]) -> str:
@@ -116,6 +145,7 @@ def summary(records: list[dict]) -> str:
                   f"(the raw plan in {sum(r['hit_raw'] for r in full)}):", "",
                   "| driven | windows |", "|---|---|"]  # fmt: skip
         lines += [f"| {k} | {v} |" for k, v in sorted(kinds.items(), key=lambda kv: -kv[1])]
+    lines += _by_group(full)
     gt = [r for r in full if "gt" in r]
     if gt:
         refused = defaultdict(int)
@@ -180,6 +210,8 @@ def main() -> None:
         boxes = batch["future_boxes"][..., :5].cpu().numpy()
         boxes_ok = batch["future_boxes_mask"].cpu().numpy().astype(bool)
         tokens = batch["meta"]["sample_tokens"][stage.settings.history - 1]
+        scenes = batch["meta"].get("scene", [""] * len(tokens))
+        about = batch["meta"].get("scene_description", [""] * len(tokens))
         for i, res in enumerate(pending):
             if (command, tokens[i]) not in seen:
                 seen.add((command, tokens[i]))
@@ -190,7 +222,8 @@ def main() -> None:
                     hits, _ = collisions_with_boxes(trajs, boxes[i], boxes_ok[i])
                     extra = {**extra, "hit_checked": bool(hits[0, -1]),
                              "hit_raw": bool(hits[1, -1])}  # fmt: skip
-                records.append({"command": command, "token": tokens[i], **rec, **extra})
+                where = {"scene": scenes[i], "behaviour": behaviour_of(about[i]) or ""}
+                records.append({"command": command, "token": tokens[i], **where, **rec, **extra})
         return out
 
     checked_mod.check_plan, wmp.checked_plans = check_plan, checked_plans

@@ -44,3 +44,18 @@ def test_collisions_at_3_s_are_counted_by_the_candidate_driven():
     assert "meets a ground-truth box at 3 s in 2 windows (the raw plan in 2)" in text
     assert "| plan, no offset, the raw plan too | 1 |" in text
     assert "| idm | 1 |" in text
+
+
+def test_behaviours_and_the_scenes_adding_most_l2_are_tabled():
+    records = [_record(), _record(), _record(), _record()]
+    for r, scene, beh, raw, checked in zip(records, ["a", "a", "b", "c"],
+                                           ["cut_in", "cut_in", "lead_brake", ""],
+                                           [1.0, 1.0, 0.5, 2.0], [5.0, 3.0, 0.5, 2.5]):  # fmt: skip
+        r.update(scene=scene, behaviour=beh, l2_raw=raw, l2_checked=checked)
+        r["hit_raw"] = beh == "cut_in"
+    text = summary(records)
+    assert "| cut_in | 2 | 1.00 | 4.00 | 6.0 | 2 / 0 |" in text
+    assert "| (none) | 1 | 2.00 | 2.50 | 0.5 | 0 / 0 |" in text
+    rows = [line for line in text.splitlines() if line.startswith(("| a |", "| b |", "| c |"))]
+    assert [row[:5] for row in rows] == ["| a |", "| c |", "| b |"]  # most L2 added first
+    assert "| behaviour |" not in summary([_record()])  # records without scenes: no table
