@@ -329,10 +329,7 @@ def make_candidates(
     stalled = top < cfg.stall_fraction * cruise and speed < cfg.stall_speed
     aim = cruise if stalled else top
     targets = [fr * aim for fr in cfg.speed_fractions]
-    # Arc length of each waypoint along the path: the path is the polyline through them.
-    s_plan = np.cumsum(np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), plan]), axis=0).T))
-    if path.folded or path.thinned:  # the plan's timing along the forward path: never backwards
-        s_plan = np.maximum.accumulate(path.project(plan))
+    s_plan = path.arcs_of(plan)  # the plan's timing along the forward path
     wps, kinds, offs, spd = [], [], [], []
     leads = leaders(scene, path, cfg.offsets_m, cfg, steps * dt)
     soft = None if cfg.soft_min_accel is None else replace(cfg, idm_min_accel=cfg.soft_min_accel)

@@ -48,9 +48,7 @@ def _held_behind_movers(plan, speed, scene, path, cfg, dt) -> np.ndarray | None:
                   agent=scene.agent[moving], vulnerable=scene.vulnerable[moving])  # fmt: skip
     steps = len(plan)
     step = np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), plan]), axis=0).T)
-    s_plan = np.cumsum(step)
-    if path.folded or path.thinned:
-        s_plan = np.maximum.accumulate(path.project(plan))
+    s_plan = path.arcs_of(plan)
     lead = leaders(sub, path, (0.0,), cfg, steps * dt)[0]
     if cfg.cap_coolness is not None:
         cfg = replace(cfg, acc_coolness=cfg.cap_coolness)

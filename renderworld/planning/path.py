@@ -66,6 +66,15 @@ class PlanPath:
         g = dist.argmin(1)
         return self.s[g] + u[np.arange(len(g)), g] * np.diff(self.s)[g]
 
+    def arcs_of(self, plan: np.ndarray) -> np.ndarray:
+        """[S] arc lengths (metres) of the plan's waypoints [S, 2] (those the path was built
+        through): their polyline's length up to each, or, where the path left points out
+        (:attr:`folded`, :attr:`thinned`), their projections onto it, never backwards."""
+        plan = np.asarray(plan, dtype=np.float64)
+        if self.folded or self.thinned:
+            return np.maximum.accumulate(self.project(plan))
+        return np.cumsum(np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), plan]), axis=0).T))
+
     def frenet(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(arc lengths [K], lateral offsets [K], left +) of positions [K, 2], metres, from
         the path points nearest to them (:meth:`project`)."""
