@@ -36,6 +36,7 @@ from renderworld.constants import KEYFRAME_DT
 from renderworld.planning.idm import FRONT, Leaders, idm_arc, idm_arcs, leaders, too_close
 from renderworld.planning.passing import pass_candidates
 from renderworld.planning.path import PlanPath
+from renderworld.planning.relax import entrant_headways
 from renderworld.planning.scene import ForecastScene
 
 __all__ = [
@@ -158,6 +159,11 @@ class CheckConfig:
             leaves (a lane change past a slower car) does not slow it.
         hold_behind_movers: ... and is then still held back behind the moving road users, whose
             forecast may be wrong, not behind what stands (:mod:`renderworld.planning.hold`).
+        entrant_headway: None, or the IDM time headway (seconds) behind a vehicle that entered
+            the corridor within the last ``entrant_relax_s`` seconds, relaxing linearly to
+            ``headway`` (:mod:`renderworld.planning.relax`): a cut-in's short gap is opened up,
+            not braked for at once (0.5 gained the closed-loop development sets; docs/planner.md).
+        entrant_relax_s: see ``entrant_headway``, seconds.
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -211,6 +217,8 @@ class CheckConfig:
     leader_stop_cap: bool = True
     hold_if_unsafe: bool = False
     hold_behind_movers: bool = False
+    entrant_headway: float | None = 0.5
+    entrant_relax_s: float = 2.0
 
 
 def check_config(overrides, name: str = "check") -> CheckConfig:
@@ -331,7 +339,8 @@ def make_candidates(
     targets = [fr * aim for fr in cfg.speed_fractions]
     s_plan = path.arcs_of(plan)  # the plan's timing along the forward path
     wps, kinds, offs, spd = [], [], [], []
-    leads = leaders(scene, path, cfg.offsets_m, cfg, steps * dt)
+    leads = leaders(scene, path, cfg.offsets_m, cfg, steps * dt,
+                    mover_headway=entrant_headways(scene, path, cfg))  # fmt: skip
     soft = None if cfg.soft_min_accel is None else replace(cfg, idm_min_accel=cfg.soft_min_accel)
     cap_cfg = cfg if cfg.cap_coolness is None else replace(cfg, acc_coolness=cfg.cap_coolness)
     # Every offset's IDM runs in one batched loop: first the hold-back (where it shares the

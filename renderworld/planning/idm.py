@@ -15,7 +15,7 @@ path from the ego's rear axle now.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -45,6 +45,8 @@ class Leaders:
         sub_dt: seconds between rows.
         delay: None, or [T, Q] seconds until the point enters the corridor (0: in it).
         entry: None, or [T, Q] arc length where it enters, metres.
+        headway: None, or [Q] IDM time headway behind each point, seconds (None: the
+            config's; :mod:`renderworld.planning.relax`).
     """
 
     arc: np.ndarray
@@ -52,6 +54,7 @@ class Leaders:
     sub_dt: float
     delay: np.ndarray | None = None
     entry: np.ndarray | None = None
+    headway: np.ndarray | None = None
 
     def nearest(
         self, i: int, front: np.ndarray, ego_speed: np.ndarray | float = 0.0,
@@ -64,17 +67,10 @@ class Leaders:
         passed where it enters by :data:`PASS_M` when it gets there. ``with_accel``: also its
         acceleration along the path [F] (m/s^2, from the next row's speed; 0 where none)."""
         row = min(i, len(self.arc) - 1)
-        arc = self.arc[row]
-        if not arc.size:
+        if not self.arc[row].size:
             none = (np.full(len(front), np.inf), np.zeros(len(front)))
             return (*none, np.zeros(len(front))) if with_accel else none
-        ahead = arc[None] > front[:, None] - BEHIND_M  # [F, Q]
-        if self.delay is not None:
-            rear = front[:, None] - EGO_LENGTH + np.reshape(ego_speed, (-1, 1)) * self.delay[row]
-            ahead &= (self.delay[row] == 0) | (rear < self.entry[row] + PASS_M)
-        gaps = np.where(ahead, arc[None] - front[:, None], np.inf)
-        j = gaps.argmin(1)
-        gap = gaps[np.arange(len(front)), j]
+        gap, j = self.nearest_index(i, front, ego_speed)
         lead_v = np.where(np.isfinite(gap), self.speed[row][j], 0.0)
         if not with_accel:
             return gap, lead_v
@@ -82,10 +78,25 @@ class Leaders:
         lead_a = np.where(np.isfinite(gap), (later - self.speed[row][j]) / self.sub_dt, 0.0)
         return gap, lead_v, lead_a
 
+    def nearest_index(
+        self, i: int, front: np.ndarray, ego_speed: np.ndarray | float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(gap [F] metres, index [F] of the leading point) at row ``i`` (:meth:`nearest`; the
+        index is 0 where the gap is inf); the arc must hold at least one point."""
+        row = min(i, len(self.arc) - 1)
+        arc = self.arc[row]
+        ahead = arc[None] > front[:, None] - BEHIND_M  # [F, Q]
+        if self.delay is not None:
+            rear = front[:, None] - EGO_LENGTH + np.reshape(ego_speed, (-1, 1)) * self.delay[row]
+            ahead &= (self.delay[row] == 0) | (rear < self.entry[row] + PASS_M)
+        gaps = np.where(ahead, arc[None] - front[:, None], np.inf)
+        j = gaps.argmin(1)
+        return gaps[np.arange(len(front)), j], j
+
 
 def leaders(
     scene: ForecastScene, path, offsets: tuple, cfg, horizon: float,
-    sub_dt: float = 0.1,
+    sub_dt: float = 0.1, mover_headway: np.ndarray | None = None,
 ) -> list[Leaders]:  # fmt: skip
     """The :class:`Leaders` of each lateral offset of a path: at every ``sub_dt`` up to
     ``horizon`` seconds, the forecast obstacle points (movers where the forecast puts them then,
@@ -103,6 +114,8 @@ def leaders(
         cfg: the :class:`renderworld.planning.candidates.CheckConfig` (corridor, ramp).
         horizon: seconds.
         sub_dt: seconds between rows.
+        mover_headway: None, or [M] the IDM time headway behind each mover, seconds
+            (:attr:`Leaders.headway`; static scenery keeps ``cfg.headway``).
     """
     s = np.arange(0.0, min(path.length, 80.0), 0.5)
     centre, hd = path.at(s)
@@ -130,6 +143,7 @@ def leaders(
     arc_m = np.zeros((n, 0))
     lat_m = np.zeros((n, 0))
     v_m = np.zeros((n, 0))
+    hw_m = np.zeros(0)
     if len(moving):
         pts = scene.points_at(np.r_[taus, taus + 0.1])[:, moving]  # [2 T, Qm, 2]
         near = np.flatnonzero(((pts[:n] >= lo) & (pts[:n] <= hi)).all(-1).any(0))
@@ -138,9 +152,14 @@ def leaders(
             vel = (pts[n:, near] - p) / 0.1
             arc_m, lat_m, c, sn = project(p)
             v_m = np.maximum(c * vel[..., 0] + sn * vel[..., 1], 0.0)
+            if mover_headway is not None:
+                hw_m = np.asarray(mover_headway, dtype=np.float64)[scene.mover[moving[near]]]
     arc = np.concatenate([np.broadcast_to(arc_s, (n, len(arc_s))), arc_m], 1)
     lat = np.concatenate([np.broadcast_to(lat_s, (n, len(lat_s))), lat_m], 1)
     along = np.concatenate([np.zeros((n, len(arc_s))), v_m], 1)
+    hw = None
+    if mover_headway is not None:
+        hw = np.concatenate([np.full(len(arc_s), cfg.headway), hw_m])
     u = np.clip(arc / max(cfg.ramp_m, 1e-6), 0.0, 1.0)
     ramp = u * u * u * (10.0 + u * (6.0 * u - 15.0)) if cfg.quintic_ramp else u * u * (3 - 2 * u)
     out = []
@@ -148,10 +167,11 @@ def leaders(
         inside = (np.abs(lat - d * ramp) <= half) & (arc >= 0.0)
         keep = inside.any(0)
         inside, a, v = inside[:, keep], arc[:, keep], along[:, keep]
+        h = None if hw is None else hw[keep]
         if not n_ahead:
-            out.append(Leaders(np.where(inside, a, np.inf), v, sub_dt))
+            out.append(Leaders(np.where(inside, a, np.inf), v, sub_dt, headway=h))
             continue
-        out.append(_anticipated(inside, a, v, n_rows, n_ahead, sub_dt))
+        out.append(replace(_anticipated(inside, a, v, n_rows, n_ahead, sub_dt), headway=h))
     return out
 
 
@@ -203,7 +223,15 @@ def idm_arc(v_now, targets, lead: Leaders, cfg, steps, dt) -> np.ndarray:
     cool = cfg.acc_coolness > 0
 
     def find(row, front, v):
-        return lead.nearest(row, front, v, with_accel=cool)
+        r = min(row, len(lead.arc) - 1)
+        if not lead.arc[r].size:
+            return np.full(len(front), np.inf), np.zeros(len(front)), np.zeros(len(front)), None
+        gap, j = lead.nearest_index(row, front, v)
+        has = np.isfinite(gap)
+        v_l = np.where(has, lead.speed[r][j], 0.0)
+        later = lead.speed[min(r + 1, len(lead.arc) - 1)][j]
+        a_l = np.where(has, (later - lead.speed[r][j]) / lead.sub_dt, 0.0) if cool else None
+        return gap, v_l, a_l, None if lead.headway is None else lead.headway[j]
 
     return _idm_loop(v_now, v0, find, lead.sub_dt, cfg, steps, dt)
 
@@ -211,7 +239,8 @@ def idm_arc(v_now, targets, lead: Leaders, cfg, steps, dt) -> np.ndarray:
 def _idm_loop(v_now, targets: np.ndarray, find, sub: float, cfg, steps, dt) -> np.ndarray:
     """[F, steps] arc lengths of IDM runs from ``v_now`` towards ``targets`` [F] (m/s), each
     behind the leader ``find(row, front bumpers [F], speeds [F])`` gives at leader row ``row``:
-    (gap [F] metres, its speed [F] m/s, and with ``cfg.acc_coolness`` its acceleration [F])."""
+    (gap [F] metres, its speed [F] m/s, its acceleration [F] m/s^2 or None without
+    ``cfg.acc_coolness``, the time headway behind it [F] seconds or None: ``cfg.headway``)."""
     f = len(targets)
     v = np.full(f, v_now, dtype=np.float64)
     s = np.zeros(f)
@@ -222,20 +251,20 @@ def _idm_loop(v_now, targets: np.ndarray, find, sub: float, cfg, steps, dt) -> n
     for k in range(steps):
         for j in range(n_sub):
             acc = cfg.a_max * (1 - (v / v0) ** 4)
-            found = find(k * n_sub + j, s + FRONT, v)
-            gap, v_l = found[:2]
+            gap, v_l, a_l, hw = find(k * n_sub + j, s + FRONT, v)
             has = np.isfinite(gap)
             if has.any():
                 g = np.maximum(np.where(has, gap, 1.0), 0.05)
                 dv = v - v_l
-                s_star = cfg.s0 + v * cfg.headway + v * dv / (2 * np.sqrt(cfg.a_max * cfg.b))
+                t_h = cfg.headway if hw is None else np.where(has, hw, cfg.headway)
+                s_star = cfg.s0 + v * t_h + v * dv / (2 * np.sqrt(cfg.a_max * cfg.b))
                 inter = cfg.a_max * (np.maximum(s_star, 0.0) / g) ** 2
                 if cfg.idm_plus:  # IDM+: the smaller of the free-road and the interaction terms
                     acc = np.where(has, np.minimum(acc, cfg.a_max - inter), acc)
                 else:
                     acc = acc - np.where(has, inter, 0.0)
                 if cool > 0:
-                    cah = cah_accel(v, v_l, found[2], g, cfg.a_max)
+                    cah = cah_accel(v, v_l, a_l, g, cfg.a_max)
                     blend = (1 - cool) * acc + cool * (cah + cfg.b * np.tanh((acc - cah) / cfg.b))
                     acc = np.where(has & (acc < cah), blend, acc)
             acc = np.maximum(acc, cfg.idm_min_accel)
@@ -281,6 +310,14 @@ def idm_arcs(v_now, targets: list, leads: list, cfg, steps, dt) -> list:
     speed = pad(lambda ld: ld.speed, 0.0)
     delay = pad(lambda ld: ld.delay, 0.0) if anticipated.pop() else None
     entry = pad(lambda ld: ld.entry, np.inf) if delay is not None else None
+    headway = None
+    if any(ld.headway is not None for ld in leads):
+
+        def per_point(ld):  # [T, Q] the headway of each point (constant over the rows)
+            h = np.full(ld.arc.shape[1], cfg.headway) if ld.headway is None else ld.headway
+            return np.broadcast_to(h, ld.arc.shape)
+
+        headway = pad(per_point, cfg.headway)[:, 0]  # [L, q]
     run = np.repeat(np.arange(len(leads)), sizes)  # [F] each row's leader set
     rng = np.arange(len(run))
     cool = cfg.acc_coolness > 0
@@ -298,10 +335,12 @@ def idm_arcs(v_now, targets: list, leads: list, cfg, steps, dt) -> list:
         gap = gaps[rng, idx]
         has = np.isfinite(gap)
         v_l = np.where(has, speed[run, row][rng, idx], 0.0)
+        hw = None if headway is None else headway[run, idx]
         if not cool:
-            return gap, v_l
+            return gap, v_l, None, hw
         later = speed[run, min(row + 1, n - 1)][rng, idx]
-        return gap, v_l, np.where(has, (later - speed[run, row][rng, idx]) / leads[0].sub_dt, 0.0)
+        a_l = np.where(has, (later - speed[run, row][rng, idx]) / leads[0].sub_dt, 0.0)
+        return gap, v_l, a_l, hw
 
     v0 = np.concatenate([np.asarray(t, dtype=np.float64) for t in targets])
     out = _idm_loop(v_now, v0, find, leads[0].sub_dt, cfg, steps, dt)
