@@ -163,19 +163,29 @@ def test_cap_coolness_softens_the_plans_hold_back_only():
 
 
 @pytest.mark.parametrize(
-    "knobs", [{}, {"anticipate_s": 0.0}, {"acc_coolness": 0.99}, {"idm_plus": True}]
+    "knobs",
+    [
+        {},
+        {"anticipate_s": 0.0},
+        {"acc_coolness": 0.99},
+        {"idm_plus": True},
+        {"entrant_headway": None},
+    ],  # fmt: skip
 )
 def test_the_batched_idm_runs_equal_their_reference_twin(knobs):
     # Three lateral offsets' leaders in one scene (a car cutting in, a slow lead car, a
     # pedestrian), each with its own targets: the batched loop gives the runs one by one.
     from renderworld.planning.idm import idm_arcs
+    from renderworld.planning.relax import entrant_headways
 
     lead_car = (CAR, lambda t: (30.0 + 6.0 * t, -0.8), (3, 2))
     ped = (PED, lambda t: (18.0, 4.0 - 1.2 * t), (1, 1))
     occ, poses = history([cut_in(), lead_car, ped], road_half_width=8.0)
     scene = forecast_scene(occ, poses, GRID, 6)
     cfg = replace(CheckConfig(), **knobs)
-    leads = leaders(scene, PATH, (0.0, 2.0, -2.0), cfg, 3.0)
+    hw = entrant_headways(scene, PATH, cfg)  # the car cutting in: a shorter headway
+    assert hw is None if cfg.entrant_headway is None else hw.min() < cfg.headway
+    leads = leaders(scene, PATH, (0.0, 2.0, -2.0), cfg, 3.0, mover_headway=hw)
     targets = [[V, 7.5, 5.0], [V], [12.0, 2.0]]
     batched = idm_arcs(V, targets, leads, cfg, 6, 0.5)
     for t, lead, got in zip(targets, leads, batched):
