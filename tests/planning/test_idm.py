@@ -170,7 +170,7 @@ def test_cap_coolness_softens_the_plans_hold_back_only():
         {"acc_coolness": 0.99},
         {"idm_plus": True},
         {"entrant_headway": None},
-    ],  # fmt: skip
+    ],
 )
 def test_the_batched_idm_runs_equal_their_reference_twin(knobs):
     # Three lateral offsets' leaders in one scene (a car cutting in, a slow lead car, a
