@@ -4,11 +4,12 @@ A driver cut in on accepts the short gap and opens it up over the next seconds i
 braking at once to the full time headway (the headway relaxation of lane-change models, e.g.
 Schakel, Knoop and van Arem's LMRS, 2012). IDM at its full headway brakes hard for a car that
 enters 8 m ahead at the ego's own speed (``s*`` = 2 m + 1.5 s x 10 m/s against an 8 m gap:
-about 5 m/s^2). With :attr:`~renderworld.planning.candidates.CheckConfig.entrant_headway`
-the IDM time headway behind a vehicle that the tracker saw outside the corridor of the plan's
-path within the last ``entrant_relax_s`` seconds of the history is ``entrant_headway +
-(headway - entrant_headway) x tau / entrant_relax_s``, ``tau`` the seconds since the history
-frame in which it was last seen outside (0 while it is outside now, about to cut in).
+over 6 m/s^2 at its peak, ``tests/planning/test_relax.py``). With
+:attr:`~renderworld.planning.candidates.CheckConfig.entrant_headway` the IDM time headway
+behind a vehicle that the tracker saw outside the corridor of the plan's path within the last
+``entrant_relax_s`` seconds of the history is ``entrant_headway + (headway - entrant_headway) x
+tau / entrant_relax_s``, ``tau`` the seconds since the history frame in which it was last seen
+outside (0 while it is outside now, about to cut in).
 Only a vehicle that drives the ego's way counts (its fitted velocity at least
 :data:`ALONG_MPS` along the path and more along it than across it): an oncoming or crossing car,
 a pedestrian or a two-wheeler keeps the full headway, and so does a vehicle that was in the
@@ -24,6 +25,7 @@ import numpy as np
 from renderworld.constants import EGO_WIDTH, VULNERABLE_CLASS_IDS
 from renderworld.planning.path import PlanPath
 from renderworld.planning.scene import ForecastScene
+from renderworld.world.tracks import cell_xy
 
 __all__ = ["ALONG_MPS", "entrant_headways"]
 
@@ -49,22 +51,16 @@ def entrant_headways(scene: ForecastScene, path: PlanPath, cfg) -> np.ndarray | 
         return None
     hw = np.full(m, float(cfg.headway))
     half = EGO_WIDTH / 2 + cfg.corridor_margin_m
-    g = scene.grid
     for i, tr in enumerate(scene.tracks[:m]):
-        if tr.cls in VULNERABLE_CLASS_IDS:
+        if tr.cls in VULNERABLE_CLASS_IDS or not tr.cells.any():
             continue
-        ix, iy = np.nonzero(tr.cells)
-        if not len(ix):
-            continue
-        cells = np.stack([g.range_min[0] + (ix + 0.5) * g.voxel_size[0],
-                          g.range_min[1] + (iy + 0.5) * g.voxel_size[1]], -1)  # fmt: skip
-        lat_cells = path.frenet(cells)[1]
         arc, lat = path.frenet(np.asarray(tr.centroids, dtype=np.float64))  # [K], newest first
         h = float(path.at(arc[0])[1])
         vx, vy = (float(c) for c in tr.velocity)
         along, across = vx * np.cos(h) + vy * np.sin(h), -vx * np.sin(h) + vy * np.cos(h)
         if along < ALONG_MPS or abs(across) > along:
             continue
+        lat_cells = path.frenet(cell_xy(tr.cells, scene.grid))[1]
         lo, hi = lat_cells.min() - lat[0], lat_cells.max() - lat[0]
         inside = (lat + hi >= -half) & (lat + lo <= half)
         if inside.all():

@@ -50,6 +50,7 @@ __all__ = [
     "SPLIT_SPEED_MPS",
     "CACHE_SIZE",
     "MoverTrack",
+    "cell_xy",
     "clear_track_cache",
     "fit_velocity",
     "track_movers",
@@ -93,7 +94,7 @@ def _to_current(comps: list, pose: np.ndarray) -> list[np.ndarray]:
     return [rot @ c + (x, y) for _, _, c in comps]
 
 
-def _cell_xy(cells: np.ndarray, grid: GridSpec) -> np.ndarray:
+def cell_xy(cells: np.ndarray, grid: GridSpec) -> np.ndarray:
     """[K, 2] centres (metres, the frame's own ego frame) of the ``cells`` [X, Y] set."""
     ix, iy = np.nonzero(cells)
     return np.stack([grid.range_min[0] + (ix + 0.5) * grid.voxel_size[0],
@@ -110,7 +111,7 @@ def _split_frame(comps: list, pose, feet: list, vel: np.ndarray, cls: np.ndarray
     reach = GATE_M + float(grid.voxel_size[0])
     out = []
     for c_cls, cells, c in comps:
-        own = _cell_xy(cells, grid)
+        own = cell_xy(cells, grid)
         xy = own @ rot.T + (x, y)  # current ego frame
         d = np.stack([np.hypot(*(xy[:, None] - f[None]).transpose(2, 0, 1)).min(1)
                       for f in feet]) if feet else np.zeros((0, len(xy)))  # fmt: skip
@@ -150,7 +151,7 @@ def _split_merged(frames: list, poses: np.ndarray, grid: GridSpec, dt: float,
         vel = (c1[ok] - c2[j[ok]]) / dt
         xk, yk, yawk = (float(v) for v in poses[k - 1])
         rot = np.array([[np.cos(yawk), -np.sin(yawk)], [np.sin(yawk), np.cos(yawk)]])
-        feet = [_cell_xy(prev[m][1], grid) @ rot.T + (xk, yk) + vel[i] * dt
+        feet = [cell_xy(prev[m][1], grid) @ rot.T + (xk, yk) + vel[i] * dt
                 for i, m in enumerate(ok)]  # fmt: skip
         out.append(_split_frame(frames[k], poses[k], feet, vel, cls1[ok], grid, split_speed))
     return out
