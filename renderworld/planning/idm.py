@@ -71,12 +71,21 @@ class Leaders:
             none = (np.full(len(front), np.inf), np.zeros(len(front)))
             return (*none, np.zeros(len(front))) if with_accel else none
         gap, j = self.nearest_index(i, front, ego_speed)
-        lead_v = np.where(np.isfinite(gap), self.speed[row][j], 0.0)
+        lead_v, lead_a = self.motion(row, gap, j, with_accel)
+        return (gap, lead_v, lead_a) if with_accel else (gap, lead_v)
+
+    def motion(
+        self, row: int, gap: np.ndarray, j: np.ndarray, with_accel: bool = False
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """(speed [F] m/s, acceleration [F] m/s^2 or None without ``with_accel``) along the
+        path of the points ``j`` [F] that :meth:`nearest_index` found at ``row`` (0 where the
+        gap is inf; the acceleration from the next row's speed)."""
+        has = np.isfinite(gap)
+        lead_v = np.where(has, self.speed[row][j], 0.0)
         if not with_accel:
-            return gap, lead_v
+            return lead_v, None
         later = self.speed[min(row + 1, len(self.arc) - 1)][j]
-        lead_a = np.where(np.isfinite(gap), (later - self.speed[row][j]) / self.sub_dt, 0.0)
-        return gap, lead_v, lead_a
+        return lead_v, np.where(has, (later - self.speed[row][j]) / self.sub_dt, 0.0)
 
     def nearest_index(
         self, i: int, front: np.ndarray, ego_speed: np.ndarray | float = 0.0
@@ -227,10 +236,7 @@ def idm_arc(v_now, targets, lead: Leaders, cfg, steps, dt) -> np.ndarray:
         if not lead.arc[r].size:
             return np.full(len(front), np.inf), np.zeros(len(front)), np.zeros(len(front)), None
         gap, j = lead.nearest_index(row, front, v)
-        has = np.isfinite(gap)
-        v_l = np.where(has, lead.speed[r][j], 0.0)
-        later = lead.speed[min(r + 1, len(lead.arc) - 1)][j]
-        a_l = np.where(has, (later - lead.speed[r][j]) / lead.sub_dt, 0.0) if cool else None
+        v_l, a_l = lead.motion(r, gap, j, cool)
         return gap, v_l, a_l, None if lead.headway is None else lead.headway[j]
 
     return _idm_loop(v_now, v0, find, lead.sub_dt, cfg, steps, dt)
