@@ -27,7 +27,8 @@ and the tracked states are scored against the :class:`~renderworld.planning.scen
 * ``score = NC x DAC x (5 EP + 5 TTC + 2 C) / 12``.
 
 The best candidate has the highest score less ``offset_cost`` per metre of lateral offset and
-``change_cost`` per metre of mean distance from the previous plan (an offset or a change has to
+``change_cost`` per metre of mean distance from the previous plan (with ``change_sideways`` only
+across its path; an offset or a change has to
 buy safety or progress: no weaving or dithering between equal candidates), the earlier one in
 candidate order on ties (the learned plan itself comes first); the learned plan also wins while
 it scores above 0 and trails the best by at most ``plan_margin``. A ``pass`` candidate (past a
@@ -57,7 +58,7 @@ from renderworld.planning.kinematics import SIM_DT, KinematicLimits
 from renderworld.planning.scene import ForecastScene
 from renderworld.planning.tracking import track_plans
 
-__all__ = ["CandidateScores", "comfort_excess", "comfort_ok", "score_candidates"]
+__all__ = ["CandidateScores", "comfort_excess", "comfort_ok", "plan_change", "score_candidates"]
 
 _TTC_CONE = np.radians(30.0)
 _STOPPED = 0.05  # m/s
@@ -190,6 +191,28 @@ def _relevant(scene: ForecastScene, states: np.ndarray, times: np.ndarray) -> np
     return np.flatnonzero(near)
 
 
+def plan_change(waypoints: np.ndarray, previous: np.ndarray, sideways: bool) -> np.ndarray:
+    """[N] metres: each candidate's mean distance from the previous plan's waypoints.
+
+    Args:
+        waypoints: [N, S, 2] the candidates, current ego frame.
+        previous: [S, 2] the previous plan carried on to now, the same frame.
+        sideways: only the part across the previous plan's direction at each waypoint (the
+            chord through its neighbours; the ego's heading where it stands): a change of speed
+            costs nothing, a change of path does.
+    """
+    prev = np.asarray(previous, dtype=np.float64)
+    diff = np.asarray(waypoints, dtype=np.float64) - prev[None]
+    if not sideways:
+        return np.hypot(diff[..., 0], diff[..., 1]).mean(-1)
+    pts = np.concatenate([np.zeros((1, 2)), prev])
+    chord = np.gradient(pts, axis=0)[1:]  # [S, 2]
+    n = np.hypot(chord[:, 0], chord[:, 1])
+    unit = np.where(n[:, None] > 1e-3, chord / np.maximum(n, 1e-3)[:, None], [1.0, 0.0])
+    normal = np.stack([-unit[:, 1], unit[:, 0]], axis=-1)
+    return np.abs((diff * normal[None]).sum(-1)).mean(-1)
+
+
 def score_candidates(
     cands: Candidates,
     scene: ForecastScene,
@@ -281,8 +304,7 @@ def score_candidates(
         discomfort = cfg.discomfort_cost * np.maximum(excess - 1.0, 0.0)
         cost = cost + discomfort
         if previous is not None and cfg.change_cost:
-            change = np.hypot(*(wp - np.asarray(previous, dtype=np.float64)[None]).T).mean(0)
-            cost = cost + cfg.change_cost * change
+            cost = cost + cfg.change_cost * plan_change(wp, previous, cfg.change_sideways)
         choice = score - cost
         if not cfg.steady_for_comfort and nc[0] * dac[0] * ttc[0] > 0:  # the plan's path is safe
             steady = np.array([k.startswith("steady") for k in cands.kind])

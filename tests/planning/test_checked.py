@@ -4,6 +4,8 @@ The ego drives along +x at 10 m/s; each history frame is drawn in its own ego fr
 learned plan is replaced by a hand-made one, so every case knows what the check must do.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -284,11 +286,40 @@ def test_a_standing_ego_is_not_at_fault_for_what_runs_into_it():
 def test_a_change_of_plan_has_to_buy_something():
     occ, poses = history()
     slower = straight_plan(speed=8.0)[:, :2]  # the previous plan, carried on to now
-    cfg = CheckConfig(change_cost=0.2)
+    cfg = CheckConfig(change_cost=0.2, change_sideways=False)
     free = check_plan(occ, poses, straight_plan(), GRID)
     kept = check_plan(occ, poses, straight_plan(), GRID, cfg, previous=slower)
     dist = lambda w: np.hypot(*(w - slower).T).mean()  # noqa: E731
     assert dist(kept.trajectory) < dist(free.trajectory) - 0.5
+
+
+def test_a_sideways_change_costs_and_a_change_of_speed_does_not():
+    from renderworld.planning.check import plan_change
+
+    previous = straight_plan()[:, :2]  # along +x at 10 m/s
+    slower = straight_plan(speed=6.0)[:, :2]  # the same path, braking
+    shifted = previous + [0.0, 1.0]  # one metre to the left
+    wps = np.stack([previous, slower, shifted])
+    np.testing.assert_allclose(plan_change(wps, previous, sideways=True), [0.0, 0.0, 1.0])
+    full = plan_change(wps, previous, sideways=False)
+    assert full[1] > 3.0 and full[2] == 1.0
+    # Across a turning previous plan the normal turns with it: a shift along it costs nothing.
+    ang = np.arange(1, 7) * 0.1
+    arc = np.stack([20 * np.sin(ang), 20 * (1 - np.cos(ang))], -1)
+    along = np.stack([20 * np.sin(ang + 0.02), 20 * (1 - np.cos(ang + 0.02))], -1)
+    assert plan_change(along[None], arc, sideways=True)[0] < 0.02
+    # In the check: braking behind a slower previous plan is not held to its speed.
+    occ, poses = history()
+    prev = straight_plan(8.0)[:, :2]
+    cfg = CheckConfig(change_cost=0.2, change_sideways=True)
+    kept = check_plan(occ, poses, straight_plan(), GRID, cfg, previous=prev)
+    free = check_plan(occ, poses, straight_plan(), GRID, CheckConfig(change_cost=0.0),
+                      previous=prev)  # fmt: skip
+    np.testing.assert_array_equal(kept.trajectory, free.trajectory)
+    held = check_plan(occ, poses, straight_plan(), GRID, replace(cfg, change_sideways=False),
+                      previous=prev)  # fmt: skip
+    assert not np.array_equal(held.trajectory, free.trajectory)  # the full distance holds it
+    assert CheckConfig().change_sideways and CheckConfig().change_cost == 0.05  # the default
 
 
 def _curve(state, radius, steps=6):
