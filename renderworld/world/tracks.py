@@ -12,7 +12,9 @@ its pose, so the ego's own motion is compensated:
   the two frames before) whose velocities differ by at least :data:`SPLIT_SPEED_MPS`, its
   cells go to the nearest footprint.
 * **Matching** (newest frame first): a track's next older position is predicted from its
-  velocity so far (none yet: where it was last seen); the nearest component of the same class
+  velocity so far (none yet: where it was last seen, and each older component is first carried
+  on to now by its own velocity from the frame before it, so that of two movers passing side
+  by side the one that comes here continues the track); the nearest component of the same class
   within the gate ``GATE_M + max_speed * gap`` of that prediction (``gap`` seconds since the
   track was last seen; the class's :data:`~renderworld.world.movers.MAX_SPEED_MPS` while the
   track has no velocity, :data:`GATE_SPEED_MPS` once it has) continues it, closest pairs
@@ -157,6 +159,24 @@ def _split_merged(frames: list, poses: np.ndarray, grid: GridSpec, dt: float,
     return out
 
 
+def _frame_velocities(c1: np.ndarray, cls1: np.ndarray, older: list, pose, dt: float):
+    """[M, 2] m/s: the velocity of each mover of a frame (centroids ``c1`` [M, 2], classes
+    ``cls1`` [M], current ego frame) from its nearest one of the same class in the frame
+    ``dt`` before (``older``, taken at ``pose``) within the gate; NaN where none is."""
+    vel = np.full((len(c1), 2), np.nan)
+    if not len(older):
+        return vel
+    c2 = np.stack(_to_current(older, pose))
+    cls2 = np.array([p[0] for p in older])
+    d = np.hypot(*(c1[:, None] - c2[None]).transpose(2, 0, 1))
+    d = np.where(cls1[:, None] == cls2[None], d, np.inf)
+    j = d.argmin(1)
+    gate = GATE_M + np.array([MAX_SPEED_MPS[c] for c in cls1]) * dt
+    ok = d[np.arange(len(c1)), j] <= gate
+    vel[ok] = (c1[ok] - c2[j[ok]]) / dt
+    return vel
+
+
 def fit_velocity(times: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Least-squares slope [2] (m/s) of positions [K, 2] over times [K] (zeros for K < 2)."""
     if len(times) < 2:
@@ -265,6 +285,7 @@ def _track(occ, poses, grid, dt, min_shift_voxels, split_speed_mps) -> list[Move
         past_cls = np.array([pcls for pcls, _, _ in past])
         t_k = (k - (t_n - 1)) * dt
         preds, gates = np.empty((len(current), 2)), np.empty(len(current))
+        fresh = np.array([len(seen_t[i]) == 1 for i in range(len(current))])
         for i, (cls, _, _) in enumerate(current):
             times, cents = np.array(seen_t[i]), np.array(seen_c[i])
             vel = fit_velocity(times, cents)
@@ -273,6 +294,13 @@ def _track(occ, poses, grid, dt, min_shift_voxels, split_speed_mps) -> list[Move
             speed = GATE_SPEED_MPS if len(times) > 1 else MAX_SPEED_MPS[cls]
             gates[i] = GATE_M + speed * gap
         diff = past_c[None] - preds[:, None]  # [N, M, 2]
+        if fresh.any() and k > 0 and frames[k - 1]:
+            # A track seen only now has no velocity: each older mover is carried on to now by
+            # its own (from the frame before it), so that of two movers passing side by side
+            # the one that comes here continues it, not the nearer one's old place.
+            vel_k = _frame_velocities(past_c, past_cls, frames[k - 1], poses[k - 1], dt)
+            carried = past_c + np.nan_to_num(vel_k) * -t_k
+            diff[fresh] = carried[None] - preds[fresh][:, None]
         dist = np.sqrt(diff[..., 0] ** 2 + diff[..., 1] ** 2)
         ok = (cur_cls[:, None] == past_cls[None]) & (dist <= gates[:, None])
         ii, jj = np.nonzero(ok)

@@ -466,6 +466,20 @@ def test_a_lead_car_met_by_an_oncoming_one_keeps_its_own_motion():
     assert tracks[1].centroid[1] < 0.5 < tracks[0].centroid[1]  # each keeps its own lane's cells
 
 
+def test_a_lead_car_met_by_an_oncoming_one_seen_once_before_keeps_its_history():
+    # The oncoming car enters the grid half a second ago (one frame, no velocity to split by)
+    # and touches the lead car now: the one component continues the lead car's track.
+    lead = (CAR, lambda t: (28.0 + 12.0 * t, -0.8), (3, 2))  # 28 m ahead, 12 m/s
+    oncoming = (CAR, lambda t: (28.0 - 12.0 * t if t > -0.75 else 1e4, 1.6), (3, 2))
+    occ, poses = history([lead, oncoming])
+    from renderworld.world.tracks import clear_track_cache, track_movers
+
+    clear_track_cache()
+    tracks = [tr for tr in track_movers(occ, poses, GRID) if tr.moving]
+    assert len(tracks) == 1 and len(tracks[0].times) == H  # the whole history, the lead's
+    assert float(tracks[0].velocity[0]) == pytest.approx(12.0, abs=1.5)
+
+
 def test_however_uncomfortable_a_safe_plan_is_it_is_replaced_only_where_its_discomfort_counts():
     t = np.arange(1, 31) * 0.1  # 4 m/s^2 for 0.5 s from 10 m/s, then on at 8 m/s
     x = np.cumsum(np.where(t <= 0.5, V - 4.0 * t, V - 2.0) * 0.1)
