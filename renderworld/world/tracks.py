@@ -143,14 +143,10 @@ def _split_merged(frames: list, poses: np.ndarray, grid: GridSpec, dt: float,
             out.append(frames[k])
             continue
         c1 = np.stack(_to_current(prev, poses[k - 1]))
-        c2 = np.stack(_to_current(older, poses[k - 2]))
-        cls1, cls2 = np.array([p[0] for p in prev]), np.array([p[0] for p in older])
-        d = np.hypot(*(c1[:, None] - c2[None]).transpose(2, 0, 1))  # [M1, M2]
-        d = np.where(cls1[:, None] == cls2[None], d, np.inf)
-        j = d.argmin(1)
-        gate = GATE_M + np.array([MAX_SPEED_MPS[c] for c in cls1]) * dt
-        ok = np.flatnonzero(d[np.arange(len(prev)), j] <= gate)
-        vel = (c1[ok] - c2[j[ok]]) / dt
+        cls1 = np.array([p[0] for p in prev])
+        vel = _frame_velocities(c1, cls1, older, poses[k - 2], dt)
+        ok = np.flatnonzero(~np.isnan(vel[:, 0]))
+        vel = vel[ok]
         xk, yk, yawk = (float(v) for v in poses[k - 1])
         rot = np.array([[np.cos(yawk), -np.sin(yawk)], [np.sin(yawk), np.cos(yawk)]])
         feet = [cell_xy(prev[m][1], grid) @ rot.T + (xk, yk) + vel[i] * dt

@@ -35,38 +35,21 @@ def test_sets_are_summed_up_and_paired_within_each_set(tmp_path):
     assert "vs --against" not in table(new, None)
 
 
-def test_bad_arguments_are_named(tmp_path):
+def run_script(*args):
+    """benchmarks/closed_loop_dev.py with ``args``, its exit code and stderr."""
     script = ROOT / "benchmarks" / "closed_loop_dev.py"
-    run = subprocess.run(
-        [
-            sys.executable,
-            str(script),
-            "--bundle",
-            str(tmp_path / "no.pt"),
-            "--out",
-            str(tmp_path / "out"),
-        ],
-        capture_output=True,
-        text=True,
-    )
-    assert run.returncode != 0 and "--bundle: no planner bundle" in run.stderr
+    run = subprocess.run([sys.executable, str(script), *map(str, args)], capture_output=True,
+                         text=True)  # fmt: skip
+    return run.returncode, run.stderr
+
+
+def test_bad_arguments_are_named(tmp_path):
+    rc, err = run_script("--bundle", tmp_path / "no.pt", "--out", tmp_path / "out")
+    assert rc != 0 and "--bundle: no planner bundle" in err
     bundle = tmp_path / "b.pt"
     bundle.write_bytes(b"")
-    run = subprocess.run(
-        [
-            sys.executable,
-            str(script),
-            "--bundle",
-            str(bundle),
-            "--out",
-            str(tmp_path / "out"),
-            "--against",
-            str(tmp_path / "none"),
-        ],
-        capture_output=True,
-        text=True,
-    )
-    assert run.returncode != 0 and "--against:" in run.stderr
+    rc, err = run_script("--bundle", bundle, "--out", tmp_path / "out", "--against", tmp_path / "x")
+    assert rc != 0 and "--against:" in err and "has no run of the sets" in err
 
 
 @pytest.mark.parametrize("name", ["turns", "routes", "pdev", "pdevi"])
