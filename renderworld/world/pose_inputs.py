@@ -18,6 +18,7 @@ __all__ = [
     "invert_poses",
     "kinematic_features",
     "motion_channels",
+    "jittered_history",
     "steady_history",
 ]
 
@@ -184,3 +185,28 @@ def steady_history(history_poses: torch.Tensor) -> torch.Tensor:
     past = torch.cat([back, yaw[..., None]], -1).flip(1)  # t-H+1 .. t-1
     out = torch.cat([past, torch.zeros_like(q[:, :1])], 1)
     return out.to(history_poses.dtype)
+
+
+def jittered_history(history_poses: torch.Tensor, sigma_m: float) -> torch.Tensor:
+    """The history with every past position moved by Gaussian noise of ``sigma_m`` per axis
+    (the current pose, the origin, and every heading stay): the pose head's history noise
+    trains it to read a trend of a few centimetres per step, such as a plan tracked a little
+    behind in closed loop, as noise rather than as braking.
+
+    Args:
+        history_poses: [B, H, 3] (x, y, yaw) of frames t-H+1..t in the current ego frame (the
+            last row the origin).
+        sigma_m: standard deviation of the noise, metres (>= 0; 0 returns the input).
+
+    Returns:
+        [B, H, 3], same dtype and device.
+    """
+    if history_poses.dim() != 3 or history_poses.shape[-1] != 3:
+        raise ValueError(f"history_poses: expected [B, H, 3], got {tuple(history_poses.shape)}")
+    if not sigma_m >= 0:
+        raise ValueError(f"sigma_m: expected a number >= 0, got {sigma_m!r}")
+    if sigma_m == 0:
+        return history_poses
+    noise = torch.randn_like(history_poses[:, :-1, :2]) * sigma_m
+    past = torch.cat([history_poses[:, :-1, :2] + noise, history_poses[:, :-1, 2:]], -1)
+    return torch.cat([past, history_poses[:, -1:]], 1)

@@ -158,6 +158,32 @@ def test_past_motion_dropout_shows_the_pose_head_steady_histories_in_training_on
         WorldModelStage(compose_cfg([*over, "stage.pose_history_dropout=1.5"]))
 
 
+def test_history_noise_moves_the_pose_heads_history_in_training_only(wm_overrides, tmp_path):
+    from renderworld.training.stages.world_model.pose_warp import pose_terms
+
+    over = [*wm_overrides, *POSE, f"run_dir={tmp_path}"]
+    stage = WorldModelStage(compose_cfg(over))
+    train_set, _ = stage.build_datasets(compose_cfg(over))
+    batch = next(iter(DataLoader(train_set, batch_size=2)))
+    torch.manual_seed(0)
+    model = stage.build_model(compose_cfg(over)).train()
+    with torch.no_grad():  # a head that reads the history's trend
+        model.pose.mlp[-1].weight.normal_(0.0, 0.1)
+    noisy = WorldModelStage(compose_cfg([*over, "stage.pose_history_noise_m=0.05"]))
+    noisy.build_datasets(compose_cfg([*over, "stage.pose_history_noise_m=0.05"]))
+    plain = pose_terms(stage, model, batch)["pose"]
+    torch.manual_seed(1)
+    first = pose_terms(noisy, model, batch)["pose"]
+    torch.manual_seed(1)
+    torch.testing.assert_close(pose_terms(noisy, model, batch)["pose"], first)  # seeded
+    assert not torch.allclose(first, plain)
+    model.eval()  # evaluation and planning read the history as it is
+    torch.testing.assert_close(pose_terms(noisy, model, batch)["pose"],
+                               pose_terms(stage, model, batch)["pose"])  # fmt: skip
+    with pytest.raises(ValueError, match="stage.pose_history_noise_m: expected a number >= 0"):
+        WorldModelStage(compose_cfg([*over, "stage.pose_history_noise_m=-0.1"]))
+
+
 def test_each_pose_head_of_an_ensemble_trains_on_its_own_loss(wm_overrides, tmp_path):
     from renderworld.training.stages.world_model.pose_warp import pose_terms
     from renderworld.world.pose import PoseHead

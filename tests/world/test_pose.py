@@ -20,7 +20,7 @@ from renderworld.world.pose import (
     motion_channels,
     pose_loss,
 )
-from renderworld.world.pose_inputs import steady_history
+from renderworld.world.pose_inputs import jittered_history, steady_history
 
 GRID = GridSpec("test", (-4.0, -4.0, 0.0), (4.0, 4.0, 2.0), (8, 8, 2))
 
@@ -204,6 +204,28 @@ def test_steady_history_keeps_the_last_step_and_drops_the_trend():
     assert f[:, 3 * n - 1 :].abs().max() < 1e-4  # nor a change of turn rate
     with pytest.raises(ValueError, match=r"history_poses: expected \[B, H>=2, 3\]"):
         steady_history(torch.zeros(1, 1, 3))
+
+
+def test_jittered_history_moves_past_positions_only_by_the_noise_asked():
+    torch.manual_seed(0)
+    hist = torch.zeros(4000, 5, 3)
+    hist[:, :, 0] = torch.tensor([-12.0, -9.0, -6.0, -3.0, 0.0])
+    hist[:, :, 2] = torch.tensor([-0.04, -0.03, -0.02, -0.01, 0.0])
+    out = jittered_history(hist, 0.03)
+    assert out.shape == hist.shape and out.dtype == hist.dtype
+    torch.testing.assert_close(out[:, -1], hist[:, -1])  # the current pose is the origin still
+    torch.testing.assert_close(out[..., 2], hist[..., 2])  # headings stay
+    moved = out[:, :-1, :2] - hist[:, :-1, :2]
+    assert moved.std().item() == pytest.approx(0.03, rel=0.05)
+    assert moved.mean().abs().item() < 0.002
+    # A 3 cm trend per step reads as a speed change the head can resolve; the noise hides it.
+    f = kinematic_features(hist)[:, 4:7]
+    assert f.abs().max() < 1e-4 and kinematic_features(out)[:, 4:7].abs().mean() > 0.5
+    assert jittered_history(hist, 0.0) is hist
+    with pytest.raises(ValueError, match="sigma_m: expected a number >= 0"):
+        jittered_history(hist, -0.1)
+    with pytest.raises(ValueError, match=r"history_poses: expected \[B, H, 3\]"):
+        jittered_history(torch.zeros(5, 3), 0.03)
 
 
 def test_pose_head_with_kinematics_starts_at_its_anchor_and_reads_them():

@@ -31,7 +31,7 @@ from renderworld.training.stages.world_model.report import CHECKED, CHECKED_HIST
 from renderworld.training.stages.world_model.windows import frame_keys
 from renderworld.world.forecast import movers_of, pose_warp_forecast, warp_current
 from renderworld.world.pose import align_history, pose_loss
-from renderworld.world.pose_inputs import steady_history
+from renderworld.world.pose_inputs import jittered_history, steady_history
 
 if TYPE_CHECKING:
     from renderworld.constants import GridSpec
@@ -207,6 +207,8 @@ def pose_terms(stage: PoseWarpStage, model: Any, batch: dict, inputs: str = "occ
         drop = torch.rand(hist_poses.shape[0], device=hist_poses.device) < st.pose_history_dropout
         steady = steady_history(hist_poses)
         hist_poses = torch.where(drop[:, None, None], steady, hist_poses)
+    if model.training and st.pose_history_noise_m > 0:
+        hist_poses = jittered_history(hist_poses, st.pose_history_noise_m)
 
     def loss(preds: torch.Tensor, gt: torch.Tensor) -> dict:
         # Each pose head on its own loss: ``pose`` summed over heads (each gets the gradient

@@ -77,6 +77,7 @@ class StageSettings:
     pose_warmup_steps: int = 0
     pose_joint_lr_scale: float | None = None
     pose_history_dropout: float = 0.0
+    pose_history_noise_m: float = 0.0
     mover_fit_steps: int = 0
     mover_lr: float = 2e-3
     mover_batch: int = 256
@@ -175,6 +176,7 @@ def stage_settings(cfg: Any) -> StageSettings:
         raise ValueError(
             f"stage.pose_history_dropout: expected a fraction in [0, 1], got {dropout!r}"
         )
+    noise = _number(s, "pose_history_noise_m", 0.0)
     fit = s.get("mover_fit_steps") or 0
     if not isinstance(fit, int) or isinstance(fit, bool) or fit < 0:
         raise ValueError(f"stage.mover_fit_steps: expected an int >= 0, got {fit!r}")
@@ -218,6 +220,7 @@ def stage_settings(cfg: Any) -> StageSettings:
         pose_warmup_steps=warmup,
         pose_joint_lr_scale=joint,
         pose_history_dropout=dropout,
+        pose_history_noise_m=noise,
         mover_fit_steps=fit,
         mover_lr=mover_lr,
         mover_batch=batch,
