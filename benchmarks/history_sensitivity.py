@@ -112,11 +112,12 @@ def main() -> None:
         poses = it["history_poses"].double().numpy()
         occ, cmd = it["occ"][:h].numpy(), COMMANDS[int(it["command"])]
         disp = np.diff(poses[:, :2], axis=0)
-        plans = [
-            planner.plan(PlanRequest(occ, d, cmd, ego_yaws=poses[:, 2]), forecast=False)
-            for d in (disp, perturbed_last_step(disp, -args.delta_m),
-                      perturbed_last_step(disp, args.delta_m))
-        ]  # fmt: skip
+        plans = planner.plan_batch(
+            [PlanRequest(occ, d, cmd, ego_yaws=poses[:, 2])
+             for d in (disp, perturbed_last_step(disp, -args.delta_m),
+                       perturbed_last_step(disp, args.delta_m))],
+            forecast=False,
+        )  # fmt: skip
         x3 = [float(p.trajectory[-1, 0]) for p in plans]
         rows.append({
             "scene": it["meta"]["scene"],

@@ -129,20 +129,27 @@ def test_the_pose_warm_up_fits_the_pose_head_alone(wm_overrides, tmp_path):
     assert any(not torch.equal(v, model.pose.state_dict()[k]) for k, v in head.items())
 
 
-def test_past_motion_dropout_shows_the_pose_head_steady_histories_in_training_only(
-    wm_overrides, tmp_path
-):
-    from renderworld.training.stages.world_model.pose_warp import pose_terms
-    from renderworld.world.pose_inputs import steady_history
-
+def _trend_reading_head(wm_overrides, tmp_path):
+    """(overrides, stage, a training batch of 2, a model in training mode whose pose head reads
+    the history's trend)."""
     over = [*wm_overrides, *POSE, f"run_dir={tmp_path}"]
     stage = WorldModelStage(compose_cfg(over))
     train_set, _ = stage.build_datasets(compose_cfg(over))
     batch = next(iter(DataLoader(train_set, batch_size=2)))
     torch.manual_seed(0)
     model = stage.build_model(compose_cfg(over)).train()
-    with torch.no_grad():  # a head that reads the history's trend
+    with torch.no_grad():
         model.pose.mlp[-1].weight.normal_(0.0, 0.1)
+    return over, stage, batch, model
+
+
+def test_past_motion_dropout_shows_the_pose_head_steady_histories_in_training_only(
+    wm_overrides, tmp_path
+):
+    from renderworld.training.stages.world_model.pose_warp import pose_terms
+    from renderworld.world.pose_inputs import steady_history
+
+    over, stage, batch, model = _trend_reading_head(wm_overrides, tmp_path)
     steady = dict(batch, history_poses=steady_history(batch["history_poses"].double()))
     assert not torch.allclose(steady["history_poses"].float(), batch["history_poses"].float())
     plain, on_steady = pose_terms(stage, model, batch), pose_terms(stage, model, steady)
@@ -161,14 +168,7 @@ def test_past_motion_dropout_shows_the_pose_head_steady_histories_in_training_on
 def test_history_noise_moves_the_pose_heads_history_in_training_only(wm_overrides, tmp_path):
     from renderworld.training.stages.world_model.pose_warp import pose_terms
 
-    over = [*wm_overrides, *POSE, f"run_dir={tmp_path}"]
-    stage = WorldModelStage(compose_cfg(over))
-    train_set, _ = stage.build_datasets(compose_cfg(over))
-    batch = next(iter(DataLoader(train_set, batch_size=2)))
-    torch.manual_seed(0)
-    model = stage.build_model(compose_cfg(over)).train()
-    with torch.no_grad():  # a head that reads the history's trend
-        model.pose.mlp[-1].weight.normal_(0.0, 0.1)
+    over, stage, batch, model = _trend_reading_head(wm_overrides, tmp_path)
     noisy = WorldModelStage(compose_cfg([*over, "stage.pose_history_noise_m=0.05"]))
     noisy.build_datasets(compose_cfg([*over, "stage.pose_history_noise_m=0.05"]))
     plain = pose_terms(stage, model, batch)["pose"]
