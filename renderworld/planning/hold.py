@@ -22,20 +22,9 @@ from renderworld.planning.check import score_candidates
 from renderworld.planning.idm import idm_arc, leaders
 from renderworld.planning.kinematics import KinematicLimits
 from renderworld.planning.scene import ForecastScene
+from renderworld.planning.standing import moving_points
 
-__all__ = ["moving_points", "unhold_if_safe"]
-
-#: metres: a mover forecast to move less than this over the horizon stands.
-STANDING_M = 1.0
-
-
-def moving_points(scene: ForecastScene) -> np.ndarray:
-    """[P] bool: the scene's points of a mover forecast to move :data:`STANDING_M` or more."""
-    disp = scene.displacements  # [M, S + 1, 2]
-    if not len(disp):
-        return np.zeros(len(scene.points), dtype=bool)
-    travel = np.hypot(*(disp[:, 1:] - disp[:, :-1]).transpose(2, 0, 1)).sum(-1)  # [M]
-    return (scene.mover >= 0) & (travel[np.maximum(scene.mover, 0)] >= STANDING_M)
+__all__ = ["unhold_if_safe"]
 
 
 def _held_behind_movers(plan, speed, scene, path, cfg, dt) -> np.ndarray | None:

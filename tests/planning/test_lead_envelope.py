@@ -114,8 +114,8 @@ def test_hold_if_unsafe_still_holds_a_plan_that_would_hit_a_standing_car():
 
 def test_hold_behind_movers_still_holds_the_plan_behind_a_moving_car():
     from renderworld.planning.checked import check_plan
-    from renderworld.planning.hold import moving_points
     from renderworld.planning.scene import forecast_scene
+    from renderworld.planning.standing import moving_points
 
     occ, poses, plan = _lane_change_past_a_slower_car()
     assert moving_points(forecast_scene(occ, poses, GRID, 6)).any()

@@ -1,0 +1,67 @@
+"""What stands in the forecast, and a shorter IDM headway behind it.
+
+IDM's time headway (``CheckConfig.headway``, 1.5 s) is the room a follower keeps for its leader
+braking. An obstacle that stands cannot brake: a parked car, a car stopped in a queue, static
+scenery. Behind it the full headway only makes the ego brake early and long, which in an
+overtake means standing behind a parked car that the learned plan was about to steer round.
+With :attr:`~renderworld.planning.candidates.CheckConfig.standing_headway` the IDM time headway
+behind what stands is that value instead: static scenery, and every vehicle the forecast moves
+less than :data:`STANDING_M` over the horizon. A standing pedestrian or two-wheeler keeps the
+full headway (it may step or pull off at once), and so does every mover that moves.
+
+Frames: the current ego frame (x forward, y left; metres, seconds).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from renderworld.constants import VULNERABLE_CLASS_IDS
+from renderworld.planning.scene import ForecastScene
+
+__all__ = ["STANDING_M", "mover_travel", "moving_points", "standing_headways"]
+
+#: metres: a mover forecast to move less than this over the horizon stands.
+STANDING_M = 1.0
+
+
+def mover_travel(scene: ForecastScene) -> np.ndarray:
+    """[M] metres each mover travels along its forecast displacement over the horizon."""
+    disp = scene.displacements  # [M, S + 1, 2]
+    if not len(disp):
+        return np.zeros(0)
+    return np.hypot(*(disp[:, 1:] - disp[:, :-1]).transpose(2, 0, 1)).sum(-1)
+
+
+def moving_points(scene: ForecastScene) -> np.ndarray:
+    """[P] bool: the scene's points of a mover forecast to move :data:`STANDING_M` or more."""
+    travel = mover_travel(scene)
+    if not len(travel):
+        return np.zeros(len(scene.points), dtype=bool)
+    return (scene.mover >= 0) & (travel[np.maximum(scene.mover, 0)] >= STANDING_M)
+
+
+def standing_headways(
+    scene: ForecastScene, cfg, mover_headway: np.ndarray | None = None
+) -> np.ndarray | None:
+    """[M] the IDM time headway (seconds) behind each of the scene's movers: ``mover_headway``
+    (None: ``cfg.headway``) with ``cfg.standing_headway`` behind each standing vehicle (module
+    docstring); ``mover_headway`` itself where ``cfg.standing_headway`` is None.
+
+    Args:
+        scene: the forecast scene (its tracks' classes, its movers' displacements).
+        cfg: the :class:`~renderworld.planning.candidates.CheckConfig`.
+        mover_headway: None, or [M] headways already set (e.g. an entrant's, seconds).
+    """
+    m = len(scene.displacements)
+    if cfg.standing_headway is None or m == 0:
+        return mover_headway
+    hw = (
+        np.full(m, float(cfg.headway))
+        if mover_headway is None
+        else np.asarray(mover_headway, dtype=np.float64).copy()
+    )
+    vehicle = np.array([tr.cls not in VULNERABLE_CLASS_IDS for tr in scene.tracks[:m]], bool)
+    stands = vehicle & (mover_travel(scene) < STANDING_M)
+    hw[stands] = np.minimum(hw[stands], float(cfg.standing_headway))
+    return hw
