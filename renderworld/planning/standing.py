@@ -5,9 +5,13 @@ braking. An obstacle that stands cannot brake: a parked car, a car stopped in a 
 scenery. Behind it the full headway only makes the ego brake early and long, which in an
 overtake means standing behind a parked car that the learned plan was about to steer round.
 With :attr:`~renderworld.planning.candidates.CheckConfig.standing_headway` the IDM time headway
-behind what stands is that value instead: static scenery, and every vehicle the forecast moves
-less than :data:`STANDING_M` over the horizon. A standing pedestrian or two-wheeler keeps the
-full headway (it may step or pull off at once), and so does every mover that moves.
+behind a standing vehicle is that value instead: one the tracker saw standing over the history
+(:attr:`~renderworld.world.tracks.MoverTrack.moving` false) and the forecast moves less than
+:data:`STANDING_M` over the horizon. A lead car that has just braked to a stop keeps the full
+headway (it drives off again, and time to collision is judged on its logged motion), and so do
+a standing pedestrian or two-wheeler (it may step or pull off at once), every mover that moves,
+and static scenery: where the road bends, the straight extension of the path beyond the plan's
+end meets the roadside, and the full headway is what slows the ego for the bend.
 
 Frames: the current ego frame (x forward, y left; metres, seconds).
 """
@@ -46,7 +50,8 @@ def standing_headways(
 ) -> np.ndarray | None:
     """[M] the IDM time headway (seconds) behind each of the scene's movers: ``mover_headway``
     (None: ``cfg.headway``) with ``cfg.standing_headway`` behind each standing vehicle (module
-    docstring); ``mover_headway`` itself where ``cfg.standing_headway`` is None.
+    docstring; at most, an entrant's may be shorter); ``mover_headway`` itself where
+    ``cfg.standing_headway`` is None.
 
     Args:
         scene: the forecast scene (its tracks' classes, its movers' displacements).
@@ -61,7 +66,8 @@ def standing_headways(
         if mover_headway is None
         else np.asarray(mover_headway, dtype=np.float64).copy()
     )
-    vehicle = np.array([tr.cls not in VULNERABLE_CLASS_IDS for tr in scene.tracks[:m]], bool)
-    stands = vehicle & (mover_travel(scene) < STANDING_M)
+    stood = np.array([tr.cls not in VULNERABLE_CLASS_IDS and not tr.moving
+                      for tr in scene.tracks[:m]], dtype=bool)  # fmt: skip
+    stands = stood & (mover_travel(scene) < STANDING_M)
     hw[stands] = np.minimum(hw[stands], float(cfg.standing_headway))
     return hw

@@ -4,6 +4,8 @@
 Hand-made scenes on the demo's coarse grid (the ego along +x at 10 m/s), as in ``test_relax``.
 """
 
+from dataclasses import replace
+
 import numpy as np
 
 from renderworld.constants import OCC3D_CLASSES
@@ -31,8 +33,7 @@ def run(scene, cfg):
     """(arc lengths [30] m, decelerations [30] m/s^2, leaders) of a 10 Hz IDM run at the ego's
     speed along PATH, with the config's headways."""
     hw = standing_headways(scene, cfg, entrant_headways(scene, PATH, cfg))
-    (lead,) = leaders(scene, PATH, (0.0,), cfg, 3.0, mover_headway=hw,
-                      static_headway=cfg.standing_headway)  # fmt: skip
+    (lead,) = leaders(scene, PATH, (0.0,), cfg, 3.0, mover_headway=hw)
     s = idm_arc(V, [V], lead, cfg, 30, 0.1)[0]
     v = np.diff(np.r_[0.0, s]) / 0.1
     return s, -np.diff(np.r_[V, v]) / 0.1, lead
@@ -57,13 +58,17 @@ def test_a_parked_car_is_approached_at_the_short_headway_and_still_stopped_behin
     assert gap_end > ON.s0 and decel_on.max() < 4.05
 
 
-def test_static_scenery_gets_the_short_headway():
-    scene = scene_of([(WALL, lambda t: (FRONT + 25.0, -0.8), (3, 2))])
-    assert len(scene.displacements) == 0
-    (on,) = leaders(scene, PATH, (0.0,), ON, 3.0, static_headway=0.5)
-    (off,) = leaders(scene, PATH, (0.0,), OFF, 3.0)
-    assert off.headway is None and np.all(on.headway == 0.5)
-    assert run(scene, ON)[0][9] > run(scene, OFF)[0][9] + 0.5
+def test_static_scenery_and_a_car_that_has_just_stopped_keep_the_full_headway():
+    wall = scene_of([(WALL, lambda t: (FRONT + 25.0, -0.8), (3, 2))])
+    assert len(wall.displacements) == 0
+    np.testing.assert_array_equal(run(wall, ON)[0], run(wall, OFF)[0])
+    # A lead car braking at 3 m/s^2 to a stop 25 m ahead of the front bumper now: the tracker
+    # saw it move; even where the forecast keeps it still, it keeps the full headway.
+    stopped = scene_of([(CAR, lambda t: (FRONT + 25.0 - 1.5 * min(t, 0.0) ** 2, -0.8), (3, 2))])
+    assert stopped.tracks[0].moving
+    still = replace(stopped, displacements=np.zeros_like(stopped.displacements))
+    assert mover_travel(still)[0] == 0.0
+    np.testing.assert_array_equal(standing_headways(still, ON), [ON.headway])
 
 
 def test_a_moving_lead_car_and_a_standing_pedestrian_keep_the_full_headway():
