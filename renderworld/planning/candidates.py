@@ -175,8 +175,8 @@ class CheckConfig:
             ``headway`` (:mod:`renderworld.planning.relax`): a cut-in's short gap is opened up,
             not braked for at once (0.5 gained the closed-loop development sets; docs/planner.md).
         entrant_relax_s: see ``entrant_headway``, seconds.
-        standing_headway: None, or the IDM time headway (seconds) behind a vehicle that stood
-            over the history and is forecast to move under 1 m
+        standing_headway: None, or the IDM time headway (seconds) behind a vehicle on the
+            road ahead that stood over the history and is forecast to move under 1 m
             (:mod:`renderworld.planning.standing`): a parked car cannot brake, so the full
             headway only stops the ego behind it early.
     """
@@ -357,7 +357,7 @@ def make_candidates(
     targets = [fr * aim for fr in cfg.speed_fractions]
     s_plan = path.arcs_of(plan)  # the plan's timing along the forward path
     wps, kinds, offs, spd = [], [], [], []
-    headways = standing_headways(scene, cfg, entrant_headways(scene, path, cfg))
+    headways = standing_headways(scene, path, cfg, entrant_headways(scene, path, cfg))
     leads = leaders(scene, path, cfg.offsets_m, cfg, steps * dt, mover_headway=headways)
     soft = None if cfg.soft_min_accel is None else replace(cfg, idm_min_accel=cfg.soft_min_accel)
     cap_cfg = cfg if cfg.cap_coolness is None else replace(cfg, acc_coolness=cfg.cap_coolness)

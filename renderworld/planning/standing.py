@@ -5,13 +5,14 @@ braking. An obstacle that stands cannot brake: a parked car, a car stopped in a 
 scenery. Behind it the full headway only makes the ego brake early and long, which in an
 overtake means standing behind a parked car that the learned plan was about to steer round.
 With :attr:`~renderworld.planning.candidates.CheckConfig.standing_headway` the IDM time headway
-behind a standing vehicle is that value instead: one the tracker saw standing over the history
-(:attr:`~renderworld.world.tracks.MoverTrack.moving` false) and the forecast moves less than
-:data:`STANDING_M` over the horizon. A lead car that has just braked to a stop keeps the full
-headway (it drives off again, and time to collision is judged on its logged motion), and so do
-a standing pedestrian or two-wheeler (it may step or pull off at once), every mover that moves,
-and static scenery: where the road bends, the straight extension of the path beyond the plan's
-end meets the roadside, and the full headway is what slows the ego for the bend.
+behind a standing vehicle on the road ahead is that value instead: one the tracker saw standing
+over the history (:attr:`~renderworld.world.tracks.MoverTrack.moving` false), that the forecast
+moves less than :data:`STANDING_M` over the horizon, and that the path reaches over drivable
+cells only (up to :data:`REACH_BEFORE_M` before its centroid). Everything else keeps the full
+headway: a lead car that has just braked to a stop (it drives off again, and time to collision
+is judged on its logged motion), a standing pedestrian or two-wheeler (it may step or pull off
+at once), every mover that moves, static scenery, and a car parked beside a bend, which only
+the straight extension of the path beyond the plan's end meets after leaving the road.
 
 Frames: the current ego frame (x forward, y left; metres, seconds).
 """
@@ -21,12 +22,16 @@ from __future__ import annotations
 import numpy as np
 
 from renderworld.constants import VULNERABLE_CLASS_IDS
+from renderworld.planning.path import PlanPath
 from renderworld.planning.scene import ForecastScene
 
-__all__ = ["STANDING_M", "mover_travel", "moving_points", "standing_headways"]
+__all__ = ["REACH_BEFORE_M", "STANDING_M", "mover_travel", "moving_points", "standing_headways"]
 
 #: metres: a mover forecast to move less than this over the horizon stands.
 STANDING_M = 1.0
+#: metres: the path must run on drivable cells up to this far short of a standing vehicle's
+#: centroid (about half a car's length: its own cells count as drivable).
+REACH_BEFORE_M = 2.0
 
 
 def mover_travel(scene: ForecastScene) -> np.ndarray:
@@ -46,7 +51,7 @@ def moving_points(scene: ForecastScene) -> np.ndarray:
 
 
 def standing_headways(
-    scene: ForecastScene, cfg, mover_headway: np.ndarray | None = None
+    scene: ForecastScene, path: PlanPath, cfg, mover_headway: np.ndarray | None = None
 ) -> np.ndarray | None:
     """[M] the IDM time headway (seconds) behind each of the scene's movers: ``mover_headway``
     (None: ``cfg.headway``) with ``cfg.standing_headway`` behind each standing vehicle (module
@@ -55,6 +60,7 @@ def standing_headways(
 
     Args:
         scene: the forecast scene (its tracks' classes, its movers' displacements).
+        path: the plan's path (current ego frame).
         cfg: the :class:`~renderworld.planning.candidates.CheckConfig`.
         mover_headway: None, or [M] headways already set (e.g. an entrant's, seconds).
     """
@@ -69,5 +75,9 @@ def standing_headways(
     stood = np.array([tr.cls not in VULNERABLE_CLASS_IDS and not tr.moving
                       for tr in scene.tracks[:m]], dtype=bool)  # fmt: skip
     stands = stood & (mover_travel(scene) < STANDING_M)
+    for i in np.flatnonzero(stands):
+        arc = float(path.frenet(np.asarray(scene.tracks[i].centroid, np.float64)[None])[0][0])
+        on_road = path.at(np.arange(0.0, max(arc - REACH_BEFORE_M, 0.0) + 1e-9, 1.0))[0]
+        stands[i] = bool(scene.on_drivable(on_road).all())
     hw[stands] = np.minimum(hw[stands], float(cfg.standing_headway))
     return hw

@@ -32,7 +32,7 @@ def scene_of(objects):
 def run(scene, cfg):
     """(arc lengths [30] m, decelerations [30] m/s^2, leaders) of a 10 Hz IDM run at the ego's
     speed along PATH, with the config's headways."""
-    hw = standing_headways(scene, cfg, entrant_headways(scene, PATH, cfg))
+    hw = standing_headways(scene, PATH, cfg, entrant_headways(scene, PATH, cfg))
     (lead,) = leaders(scene, PATH, (0.0,), cfg, 3.0, mover_headway=hw)
     s = idm_arc(V, [V], lead, cfg, 30, 0.1)[0]
     v = np.diff(np.r_[0.0, s]) / 0.1
@@ -47,8 +47,8 @@ def parked(ahead=25.0):
 def test_a_parked_car_is_approached_at_the_short_headway_and_still_stopped_behind():
     scene = scene_of([parked()])
     assert mover_travel(scene)[0] < 1.0
-    np.testing.assert_allclose(standing_headways(scene, ON), [0.5])
-    assert standing_headways(scene, OFF) is None
+    np.testing.assert_allclose(standing_headways(scene, PATH, ON), [0.5])
+    assert standing_headways(scene, PATH, OFF) is None
     s_off, decel_off, lead = run(scene, OFF)
     s_on, decel_on, _ = run(scene, ON)
     # The full headway brakes from the start; the short one later and less hard at first.
@@ -68,7 +68,7 @@ def test_static_scenery_and_a_car_that_has_just_stopped_keep_the_full_headway():
     assert stopped.tracks[0].moving
     still = replace(stopped, displacements=np.zeros_like(stopped.displacements))
     assert mover_travel(still)[0] == 0.0
-    np.testing.assert_array_equal(standing_headways(still, ON), [ON.headway])
+    np.testing.assert_array_equal(standing_headways(still, PATH, ON), [ON.headway])
 
 
 def test_a_moving_lead_car_and_a_standing_pedestrian_keep_the_full_headway():
@@ -76,11 +76,11 @@ def test_a_moving_lead_car_and_a_standing_pedestrian_keep_the_full_headway():
     walker = (PED, lambda t: (FRONT + 15.0, -0.8), (1, 1))
     for obj in (lead_car, walker):
         scene = scene_of([obj])
-        np.testing.assert_array_equal(standing_headways(scene, ON), [ON.headway])
+        np.testing.assert_array_equal(standing_headways(scene, PATH, ON), [ON.headway])
         np.testing.assert_array_equal(run(scene, ON)[0], run(scene, OFF)[0])
     # An entrant's shorter headway is kept where the mover moves.
-    np.testing.assert_array_equal(standing_headways(scene_of([lead_car]), ON, np.array([0.7])),
-                                  [0.7])  # fmt: skip
+    kept = standing_headways(scene_of([lead_car]), PATH, ON, np.array([0.7]))
+    np.testing.assert_array_equal(kept, [0.7])
 
 
 def test_the_checked_plan_is_held_back_less_behind_a_parked_car():
@@ -91,3 +91,18 @@ def test_the_checked_plan_is_held_back_less_behind_a_parked_car():
     # The learned plan's own candidate (held back by IDM behind the car) goes farther in 1 s.
     assert on.waypoints[0, 1, 0] > off.waypoints[0, 1, 0] + 0.2
     assert CheckConfig().standing_headway is None  # off by default
+
+
+def test_a_car_parked_where_the_path_has_left_the_road_keeps_the_full_headway():
+    # A path bending off a 7 m road (as the straight extension beyond a turning plan's end
+    # does) meets a car parked on the far side of the kerb: it is not on the road ahead.
+    occ, poses = history([(CAR, lambda t: (FRONT + 25.0, -5.6), (3, 2))], road_half_width=3.5)
+    scene = forecast_scene(occ, poses, GRID, 6)
+    xs = np.arange(0, 40.0, 5.0)
+    bend = PlanPath(np.stack([xs, -0.2 * xs], 1), 60.0)
+    assert mover_travel(scene)[0] < 1.0 and not scene.tracks[0].moving
+    np.testing.assert_array_equal(standing_headways(scene, bend, ON), [ON.headway])
+    # The same car on a path along the road (the road widened to hold it) gets the short one.
+    occ, poses = history([(CAR, lambda t: (FRONT + 25.0, -5.6), (3, 2))], road_half_width=8.0)
+    wide = forecast_scene(occ, poses, GRID, 6)
+    np.testing.assert_allclose(standing_headways(wide, bend, ON), [0.5])
