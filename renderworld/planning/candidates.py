@@ -178,7 +178,8 @@ class CheckConfig:
         standing_headway: None, or the IDM time headway (seconds) behind a vehicle on the
             road ahead that stood over the history and is forecast to move under 1 m
             (:mod:`renderworld.planning.standing`): a parked car cannot brake, so the full
-            headway only stops the ego behind it early.
+            headway only stops the ego behind it early (0.5: the closed-loop development
+            sets' mean 0.848 -> 0.855, overtakes 0.764 -> 0.811, no contact at fault).
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -236,7 +237,7 @@ class CheckConfig:
     hold_behind_movers: bool = False
     entrant_headway: float | None = 0.5
     entrant_relax_s: float = 2.0
-    standing_headway: float | None = None
+    standing_headway: float | None = 0.5
 
 
 def check_config(overrides, name: str = "check") -> CheckConfig:

@@ -12,8 +12,8 @@ from renderworld.planning.scene import forecast_scene
 
 from .test_checked import CAR, GRID, PED, V, history, straight_plan
 
-ON = CheckConfig(pass_parked=True)
-OFF = CheckConfig(pass_parked=False)
+ON = CheckConfig(pass_parked=True, standing_headway=None)  # the full headway: held back, not braked
+OFF = CheckConfig(pass_parked=False, standing_headway=None)
 PATH = PlanPath(np.concatenate([np.zeros((1, 2)), straight_plan()[:, :2]]), 60.0)
 
 

@@ -19,7 +19,7 @@ from renderworld.planning.standing import mover_travel, standing_headways
 from .test_checked import CAR, GRID, PED, V, history, straight_plan
 
 PATH = PlanPath(np.stack([np.arange(0, 40.0, 5.0), np.zeros(8)], 1), 60.0)
-OFF = CheckConfig()
+OFF = CheckConfig(standing_headway=None)
 ON = CheckConfig(standing_headway=0.5)
 WALL = OCC3D_CLASSES.index("manmade")
 
@@ -90,7 +90,7 @@ def test_the_checked_plan_is_held_back_less_behind_a_parked_car():
     on = check_plan(occ, poses, plan, GRID, ON).candidates
     # The learned plan's own candidate (held back by IDM behind the car) goes farther in 1 s.
     assert on.waypoints[0, 1, 0] > off.waypoints[0, 1, 0] + 0.2
-    assert CheckConfig().standing_headway is None  # off by default
+    assert CheckConfig().standing_headway == 0.5  # the planner's default
 
 
 def test_a_car_parked_where_the_path_has_left_the_road_keeps_the_full_headway():
