@@ -180,6 +180,7 @@ class CheckConfig:
             (:mod:`renderworld.planning.standing`): a parked car cannot brake, so the full
             headway only stops the ego behind it early (0.5: the closed-loop development
             sets' mean 0.848 -> 0.855, overtakes 0.764 -> 0.811, no contact at fault).
+        standing_min_speed: ... while the ego drives at least this fast, m/s (0: always).
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -238,6 +239,7 @@ class CheckConfig:
     entrant_headway: float | None = 0.5
     entrant_relax_s: float = 2.0
     standing_headway: float | None = 0.5
+    standing_min_speed: float = 0.0
 
 
 def check_config(overrides, name: str = "check") -> CheckConfig:
@@ -358,7 +360,7 @@ def make_candidates(
     targets = [fr * aim for fr in cfg.speed_fractions]
     s_plan = path.arcs_of(plan)  # the plan's timing along the forward path
     wps, kinds, offs, spd = [], [], [], []
-    headways = standing_headways(scene, path, cfg, entrant_headways(scene, path, cfg))
+    headways = standing_headways(scene, path, cfg, entrant_headways(scene, path, cfg), speed)
     leads = leaders(scene, path, cfg.offsets_m, cfg, steps * dt, mover_headway=headways)
     soft = None if cfg.soft_min_accel is None else replace(cfg, idm_min_accel=cfg.soft_min_accel)
     cap_cfg = cfg if cfg.cap_coolness is None else replace(cfg, acc_coolness=cfg.cap_coolness)

@@ -8,7 +8,9 @@ With :attr:`~renderworld.planning.candidates.CheckConfig.standing_headway` the I
 behind a standing vehicle on the road ahead is that value instead: one the tracker saw standing
 over the history (:attr:`~renderworld.world.tracks.MoverTrack.moving` false), that the forecast
 moves less than :data:`STANDING_M` over the horizon, and that the path reaches over drivable
-cells only (up to :data:`REACH_BEFORE_M` before its centroid). Everything else keeps the full
+cells only (up to :data:`REACH_BEFORE_M` before its centroid), while the ego drives at
+``CheckConfig.standing_min_speed`` or faster (slower, the headway only decides how close it creeps
+up behind a car that may drive off). Everything else keeps the full
 headway: a lead car that has just braked to a stop (it drives off again, and time to collision
 is judged on its logged motion), a standing pedestrian or two-wheeler (it may step or pull off
 at once), every mover that moves, static scenery, and a car parked beside a bend, which only
@@ -51,7 +53,11 @@ def moving_points(scene: ForecastScene) -> np.ndarray:
 
 
 def standing_headways(
-    scene: ForecastScene, path: PlanPath, cfg, mover_headway: np.ndarray | None = None
+    scene: ForecastScene,
+    path: PlanPath,
+    cfg,
+    mover_headway: np.ndarray | None = None,
+    speed: float = np.inf,
 ) -> np.ndarray | None:
     """[M] the IDM time headway (seconds) behind each of the scene's movers: ``mover_headway``
     (None: ``cfg.headway``) with ``cfg.standing_headway`` behind each standing vehicle (module
@@ -63,9 +69,10 @@ def standing_headways(
         path: the plan's path (current ego frame).
         cfg: the :class:`~renderworld.planning.candidates.CheckConfig`.
         mover_headway: None, or [M] headways already set (e.g. an entrant's, seconds).
+        speed: the ego's speed now, m/s.
     """
     m = len(scene.displacements)
-    if cfg.standing_headway is None or m == 0:
+    if cfg.standing_headway is None or m == 0 or speed < cfg.standing_min_speed:
         return mover_headway
     hw = (
         np.full(m, float(cfg.headway))

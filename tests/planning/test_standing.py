@@ -106,3 +106,13 @@ def test_a_car_parked_where_the_path_has_left_the_road_keeps_the_full_headway():
     occ, poses = history([(CAR, lambda t: (FRONT + 25.0, -5.6), (3, 2))], road_half_width=8.0)
     wide = forecast_scene(occ, poses, GRID, 6)
     np.testing.assert_allclose(standing_headways(wide, bend, ON), [0.5])
+
+
+def test_a_slow_ego_keeps_the_full_headway_with_a_least_speed():
+    scene = scene_of([parked()])
+    slow = CheckConfig(standing_headway=0.5, standing_min_speed=3.0)
+    np.testing.assert_allclose(standing_headways(scene, PATH, slow, speed=10.0), [0.5])
+    # Creeping at 2 m/s behind a car that may drive off: the full headway, or the entrant's.
+    assert standing_headways(scene, PATH, slow, speed=2.0) is None
+    kept = standing_headways(scene, PATH, slow, np.array([0.7]), speed=2.0)
+    np.testing.assert_array_equal(kept, [0.7])
