@@ -106,7 +106,6 @@ class Leaders:
 def leaders(
     scene: ForecastScene, path, offsets: tuple, cfg, horizon: float,
     sub_dt: float = 0.1, mover_headway: np.ndarray | None = None,
-    static_headway: float | None = None,
 ) -> list[Leaders]:  # fmt: skip
     """The :class:`Leaders` of each lateral offset of a path: at every ``sub_dt`` up to
     ``horizon`` seconds, the forecast obstacle points (movers where the forecast puts them then,
@@ -125,9 +124,7 @@ def leaders(
         horizon: seconds.
         sub_dt: seconds between rows.
         mover_headway: None, or [M] the IDM time headway behind each mover, seconds
-            (:attr:`Leaders.headway`; None: ``cfg.headway``).
-        static_headway: None, or the IDM time headway behind static scenery, seconds (None:
-            ``cfg.headway``).
+            (:attr:`Leaders.headway`; static scenery keeps ``cfg.headway``).
     """
     s = np.arange(0.0, min(path.length, 80.0), 0.5)
     centre, hd = path.at(s)
@@ -170,11 +167,8 @@ def leaders(
     lat = np.concatenate([np.broadcast_to(lat_s, (n, len(lat_s))), lat_m], 1)
     along = np.concatenate([np.zeros((n, len(arc_s))), v_m], 1)
     hw = None
-    if mover_headway is not None or static_headway is not None:
-        if mover_headway is None:
-            hw_m = np.full(arc_m.shape[1], float(cfg.headway))
-        h_s = cfg.headway if static_headway is None else static_headway
-        hw = np.concatenate([np.full(len(arc_s), float(h_s)), hw_m])
+    if mover_headway is not None:
+        hw = np.concatenate([np.full(len(arc_s), cfg.headway), hw_m])
     u = np.clip(arc / max(cfg.ramp_m, 1e-6), 0.0, 1.0)
     ramp = u * u * u * (10.0 + u * (6.0 * u - 15.0)) if cfg.quintic_ramp else u * u * (3 - 2 * u)
     out = []

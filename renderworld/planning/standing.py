@@ -9,12 +9,13 @@ behind a standing vehicle on the road ahead is that value instead: one the track
 over the history (:attr:`~renderworld.world.tracks.MoverTrack.moving` false), that the forecast
 moves less than :data:`STANDING_M` over the horizon, and that the path reaches over drivable
 cells only (up to :data:`REACH_BEFORE_M` before its centroid), while the ego drives at
-``CheckConfig.standing_min_speed`` or faster (slower, the headway only decides how close it creeps
-up behind a car that may drive off). Everything else keeps the full
-headway: a lead car that has just braked to a stop (it drives off again, and time to collision
-is judged on its logged motion), a standing pedestrian or two-wheeler (it may step or pull off
-at once), every mover that moves, static scenery, and a car parked beside a bend, which only
-the straight extension of the path beyond the plan's end meets after leaving the road.
+``CheckConfig.standing_min_speed`` or faster. Everything else keeps the full headway: a lead
+car that has just braked to a stop (it drives off again, and time to collision is judged on its
+logged motion), a standing pedestrian or two-wheeler (it may step or pull off at once), every
+mover that moves, static scenery, a car parked beside a bend, which only the straight extension
+of the path beyond the plan's end meets after leaving the road, and every standing vehicle
+while the ego crawls (then the headway only decides how close it creeps up behind a car that
+may drive off).
 
 Frames: the current ego frame (x forward, y left; metres, seconds).
 """
