@@ -61,9 +61,9 @@ def standing_headways(
     speed: float = np.inf,
 ) -> np.ndarray | None:
     """[M] the IDM time headway (seconds) behind each of the scene's movers: ``mover_headway``
-    (None: ``cfg.headway``) with ``cfg.standing_headway`` behind each standing vehicle (module
-    docstring; at most, an entrant's may be shorter); ``mover_headway`` itself where
-    ``cfg.standing_headway`` is None.
+    (None: ``cfg.headway``), lowered to ``cfg.standing_headway`` behind each standing vehicle
+    (module docstring; an entrant's shorter headway is kept); ``mover_headway`` itself where
+    ``cfg.standing_headway`` is None or the ego is slower than ``cfg.standing_min_speed``.
 
     Args:
         scene: the forecast scene (its tracks' classes, its movers' displacements).
