@@ -175,14 +175,11 @@ class CheckConfig:
             ``headway`` (:mod:`renderworld.planning.relax`): a cut-in's short gap is opened up,
             not braked for at once (0.5 gained the closed-loop development sets; docs/planner.md).
         entrant_relax_s: see ``entrant_headway``, seconds.
-        standing_headway: None, or the IDM time headway (seconds) behind a vehicle on the
-            road ahead that stood over the history and is forecast to move under 1 m
-            (:mod:`renderworld.planning.standing`): a parked car cannot brake, so the full
-            headway only stops the ego behind it early (0.5: the closed-loop development
-            sets' mean 0.848 -> 0.855, overtakes 0.764 -> 0.811, no contact at fault).
-        standing_min_speed: ... while the ego drives at least this fast, m/s (0: always). Off:
-            3.0 gained the closed-loop development sets (0.855 -> 0.861) and lost both test
-            splits (interaction split 0.798 -> 0.787, 72 scenes 0.831 -> 0.827; docs).
+        standing_headway: None, or the IDM time headway (seconds) behind a parked vehicle on
+            the road ahead (:mod:`renderworld.planning.standing`): it cannot brake (0.5: the
+            closed-loop development sets 0.848 -> 0.855, no contact at fault; docs).
+        standing_min_speed: ... while the ego drives at least this fast, m/s (0: always; 3.0
+            gained the development sets and lost both closed-loop test splits; docs).
     """
 
     offsets_m: tuple[float, ...] = (0.0, -1.0, 1.0, -2.0, 2.0)
