@@ -83,9 +83,11 @@ def standing_headways(
     stood = np.array([tr.cls not in VULNERABLE_CLASS_IDS and not tr.moving
                       for tr in scene.tracks[:m]], dtype=bool)  # fmt: skip
     stands = stood & (mover_travel(scene) < STANDING_M)
-    for i in np.flatnonzero(stands):
-        arc = float(path.frenet(np.asarray(scene.tracks[i].centroid, np.float64)[None])[0][0])
-        on_road = path.at(np.arange(0.0, max(arc - REACH_BEFORE_M, 0.0) + 1e-9, 1.0))[0]
-        stands[i] = bool(scene.on_drivable(on_road).all())
+    idx = np.flatnonzero(stands)
+    if len(idx):
+        arcs = path.frenet(np.stack([scene.tracks[i].centroid for i in idx]).astype(np.float64))[0]
+        for i, arc in zip(idx, arcs, strict=True):
+            on_road = path.at(np.arange(0.0, max(arc - REACH_BEFORE_M, 0.0) + 1e-9, 1.0))[0]
+            stands[i] = bool(scene.on_drivable(on_road).all())
     hw[stands] = np.minimum(hw[stands], float(cfg.standing_headway))
     return hw
