@@ -70,7 +70,8 @@ def drive(cfg: DictConfig) -> dict:
             raise ValueError("trace: traces a checked planner's choices; pass planner=<bundle>")
         if str(cfg.trace) not in {w.name for w in worlds}:
             raise ValueError(f"trace: no scene {str(cfg.trace)!r} among this run's scenes")
-    run = run_closed_loop(worlds, planners, progress=bool(cfg.progress))
+    nudge = float(cfg.get("nudge_m") or 0.0)
+    run = run_closed_loop(worlds, planners, progress=bool(cfg.progress), nudge_m=nudge)
     check = self_check(run)
     settings = {
         "preset": str(cfg.preset),
@@ -78,6 +79,7 @@ def drive(cfg: DictConfig) -> dict:
         "scenes": [w.name for w in worlds],
         "planners": [p.name for p in planners],
         "planner_bundle": str(cfg.planner) if cfg.get("planner") else None,
+        "nudge_m": nudge,
         "build_seconds": round(build_s, 3),
         "seconds": round(time.perf_counter() - t0, 3),
     }

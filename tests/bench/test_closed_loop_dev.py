@@ -36,11 +36,11 @@ def test_sets_are_summed_up_and_paired_within_each_set(tmp_path):
 
 
 def run_script(*args):
-    """benchmarks/closed_loop_dev.py with ``args``, its exit code and stderr."""
+    """benchmarks/closed_loop_dev.py with ``args``: its exit code, stdout and stderr."""
     script = ROOT / "benchmarks" / "closed_loop_dev.py"
     run = subprocess.run([sys.executable, str(script), *map(str, args)], capture_output=True,
                          text=True)  # fmt: skip
-    return run.returncode, run.stderr
+    return run.returncode, run.stdout + run.stderr
 
 
 def test_bad_arguments_are_named(tmp_path):
@@ -49,7 +49,28 @@ def test_bad_arguments_are_named(tmp_path):
     bundle = tmp_path / "b.pt"
     bundle.write_bytes(b"")
     rc, err = run_script("--bundle", bundle, "--out", tmp_path / "out", "--against", tmp_path / "x")
-    assert rc != 0 and "--against:" in err and "has no run of the sets" in err
+    assert rc != 0 and "--against:" in err and "has no run of" in err
+    rc, err = run_script("--bundle", bundle, "--out", tmp_path / "out", "--nudges", "0", "2.5")
+    assert rc != 0 and "--nudges: expected starts within 1 m" in err
+
+
+def test_several_starts_score_each_scene_by_its_mean(tmp_path):
+    """``--nudges``: the runs from each start are read from their own folders, each scene
+    scored by its mean over them, and ``--against`` must hold the same starts."""
+    runs(tmp_path, "a", {"turns": (0.8, 0.6)})
+    runs(tmp_path / "a", "nudge+0.001", {"turns": (0.0, 1.0)})  # s1 collides from this start
+    runs(tmp_path, "b", {"turns": (0.8, 0.6)})
+    bundle = tmp_path / "b.pt"
+    bundle.write_bytes(b"")
+    args = ["--bundle", bundle, "--sets", "turns", "--nudges", "0", "0.001"]
+    rc, out = run_script(*args, "--out", tmp_path / "a")
+    assert rc == 0, out
+    turns = next(line for line in out.splitlines() if line.startswith("| turns")).split(" | ")
+    # s1: (0.8 + 0.0) / 2, s2: (0.6 + 1.0) / 2; at fault in one start of two: 0.5 per start.
+    assert turns[:4] == ["| turns", "2", "0.600", "0.50"]
+    assert "starts [0.0, 0.001] m ahead of the log" in out
+    rc, err = run_script(*args, "--out", tmp_path / "a", "--against", tmp_path / "b")
+    assert rc != 0 and "has no run of ['nudge+0.001/turns']" in err
 
 
 @pytest.mark.parametrize("name", ["turns", "routes", "pdev", "pdevi"])

@@ -257,6 +257,7 @@ def test_drive_tool_writes_tables_and_pictures(tmp_path):
     assert result["self_check"] == []
     data = json.loads((tmp_path / "closed_loop.json").read_text())
     assert set(data["summary"]) == {"log_replay", "cv"} and len(data["rows"]) == 4
+    assert data["settings"]["nudge_m"] == 0.0  # the start a run was driven from, recorded
     md = (tmp_path / "closed_loop.md").read_text()
     assert "| cv |" in md and "PDMS" in md and "voxelise ms/plan" in md
     assert (tmp_path / "closed_loop.csv").read_text().count("\n") == 5
@@ -348,3 +349,23 @@ def test_drive_command_line_sets_checker_knobs():
     knobs = check_config(cfg.check)
     assert knobs.headway == 1.0 and not knobs.steady_path and knobs.a_max == 1.5
     assert not plain.check  # no knobs: the bundle's own checked plan
+
+
+def test_a_nudged_start_moves_the_ego_along_its_heading_and_nothing_else():
+    world = _world(0)
+    cv = make_planner("cv")
+    base = run_episode(world, cv)
+    assert run_episode(world, cv, nudge_m=0.0).states.tobytes() == base.states.tobytes()
+    seen = _Fixed(lambda obs: cv.plan(obs))
+    ep = run_episode(world, seen, nudge_m=0.25)
+    (x, y), yaw = world.ego.trajectory.pose(2.0)
+    np.testing.assert_allclose(ep.states[0, :2], [x + 0.25 * np.cos(yaw), y + 0.25 * np.sin(yaw)])
+    assert ep.states[0, 2:].tobytes() == base.states[0, 2:].tobytes()  # heading, speed: the log's
+    logged = _Fixed(lambda obs: cv.plan(obs))
+    run_episode(world, logged)
+    # The first plan sees the last history step 0.25 m longer, the earlier steps as logged.
+    first, ref = seen.seen[0].displacements, logged.seen[0].displacements
+    np.testing.assert_allclose(np.hypot(*first[-1]), np.hypot(*ref[-1]) + 0.25, atol=1e-6)
+    np.testing.assert_allclose(first[:-1], ref[:-1], atol=1e-9)
+    with pytest.raises(ValueError, match="nudge_m: expected a finite distance"):
+        run_episode(world, cv, nudge_m=float("nan"))

@@ -119,6 +119,7 @@ def run_episode(
     limits: KinematicLimits | None = None,
     renderer: OccupancyRenderer | None = None,
     boxes: SceneBoxes | None = None,
+    nudge_m: float = 0.0,
 ) -> Episode:
     """Drive ``planner`` through ``world`` (module docstring: the loop and how it ends).
 
@@ -130,11 +131,17 @@ def run_episode(
         renderer: occupancy renderer on ``planner.grid`` (None: the planner's ``observer`` if
             it has one, else made here when needed).
         boxes: the world's boxes (made here when None).
+        nudge_m: the ego starts this many metres further along its heading than the log (the
+            last history frame is seen from there too): a perturbation far below anything a
+            planner should answer, which shows how far the loop's own chaos moves a score.
 
     Raises:
-        ValueError: naming the scene when it is too short for the history and one plan.
+        ValueError: naming the scene when it is too short for the history and one plan, or
+            ``nudge_m`` when it is not finite.
     """
     limits = limits or KinematicLimits()
+    if not np.isfinite(nudge_m):
+        raise ValueError(f"nudge_m: expected a finite distance in metres, got {nudge_m}")
     n_kf = scene_keyframes(world)
     h = HISTORY_FRAMES
     if n_kf < h + 1:
@@ -152,6 +159,7 @@ def run_episode(
     traj = world.ego.trajectory
     hist = [np.array([*traj.pose(k * KEYFRAME_DT)[0], traj.pose(k * KEYFRAME_DT)[1]])
             for k in range(h)]  # fmt: skip
+    hist[-1][:2] += nudge_m * np.array([np.cos(hist[-1][2]), np.sin(hist[-1][2])])
     t0 = k0 * KEYFRAME_DT
     x, y, yaw = hist[-1]
     state = EgoState(float(x), float(y), float(yaw), traj.speed(t0))

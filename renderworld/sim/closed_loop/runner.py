@@ -48,7 +48,11 @@ class ClosedLoopRun:
 
 
 def run_closed_loop(
-    worlds: list[World], planners: list, limits: KinematicLimits | None = None, progress=True
+    worlds: list[World],
+    planners: list,
+    limits: KinematicLimits | None = None,
+    progress=True,
+    nudge_m: float = 0.0,
 ) -> ClosedLoopRun:
     """Drive every planner through every world, score the episodes, then add ``EP_best``.
 
@@ -57,6 +61,7 @@ def run_closed_loop(
         planners: planner objects (:mod:`renderworld.sim.closed_loop.planners`).
         limits: the car's limits.
         progress: a tqdm bar over episodes.
+        nudge_m: every episode starts this far ahead of the log (:func:`run_episode`).
 
     Raises:
         ValueError: no worlds or planners, two planners with one name, or a scene too short.
@@ -83,7 +88,7 @@ def run_closed_loop(
         t0 = time.perf_counter()
         eps: list[Episode] = []
         for w, b in zip(worlds, boxes):
-            eps.append(run_episode(w, p, limits, renderer, b))
+            eps.append(run_episode(w, p, limits, renderer, b, nudge_m))
             if bar is not None:
                 bar.set_postfix_str(f"{p.name} {w.name}")
                 bar.update(1)
