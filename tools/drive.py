@@ -89,7 +89,7 @@ def drive(cfg: DictConfig) -> dict:
 
         scene = str(cfg.trace)
         world = next(w for w in worlds if w.name == scene)
-        paths["trace"] = write_trace(world, planners, Path(str(cfg.out)))
+        paths["trace"] = write_trace(world, planners, Path(str(cfg.out)), nudge_m=nudge)
         print(f"trace of {scene}: {paths['trace']}")
     if cfg.get("record"):
         from renderworld.viewer.closed_loop import write_episode_recording

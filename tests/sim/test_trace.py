@@ -45,6 +45,11 @@ def test_a_trace_replays_the_run_and_names_each_choice(tmp_path):
     assert path.name == f"trace_{world.name}.md" and "world_model:" in text
     assert "world_model_raw" not in text  # the raw plan has no candidates to trace
     assert text.count("\n| ") == len(rows) + 1  # the header and one line per plan
+    # A run from a nudged start is traced from that start.
+    nudged = run_closed_loop([world], [checked], progress=False, nudge_m=0.05)
+    assert nudged.episodes[0].states.tobytes() != run.episodes[0].states.tobytes()
+    again, _ = trace_scene(world, checked, nudge_m=0.05)
+    np.testing.assert_array_equal(again.states, nudged.episodes[0].states)
     with pytest.raises(ValueError, match="only a checked bundle planner"):
         trace_scene(world, raw)
     with pytest.raises(ValueError, match="trace=scene-.*: no checked planner"):

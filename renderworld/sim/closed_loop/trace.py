@@ -24,9 +24,10 @@ __all__ = ["trace_markdown", "trace_rows", "trace_scene", "write_trace"]
 SUBSCORES = ("NC", "DAC", "EP", "TTC", "C")
 
 
-def trace_scene(world, planner, limits=None) -> tuple[Episode, list]:
+def trace_scene(world, planner, limits=None, nudge_m: float = 0.0) -> tuple[Episode, list]:
     """Drive ``planner`` (a checked :class:`~renderworld.sim.closed_loop.BundlePlanner`)
-    through ``world`` once, recording every plan.
+    through ``world`` once, recording every plan, from the run's start (``nudge_m``:
+    :func:`~renderworld.sim.closed_loop.episode.run_episode`).
 
     Returns:
         (the episode, [(t seconds, PlanResult)] in the order planned).
@@ -41,7 +42,7 @@ def trace_scene(world, planner, limits=None) -> tuple[Episode, list]:
         )
     planner.results = []
     try:
-        episode = run_episode(world, planner, limits)
+        episode = run_episode(world, planner, limits, nudge_m=nudge_m)
         return episode, list(planner.results)
     finally:
         planner.results = None
@@ -132,9 +133,9 @@ def trace_markdown(scene: str, planner: str, row: dict, rows: list[dict]) -> str
     return "\n".join(lines) + "\n"
 
 
-def write_trace(world, planners: list, out: Path, limits=None) -> Path:
-    """Trace ``world`` with every checked bundle planner of ``planners``; write
-    ``out/trace_<scene>.md`` and return its path.
+def write_trace(world, planners: list, out: Path, limits=None, nudge_m: float = 0.0) -> Path:
+    """Trace ``world`` with every checked bundle planner of ``planners`` from the run's start
+    (``nudge_m``); write ``out/trace_<scene>.md`` and return its path.
 
     Raises:
         ValueError: naming ``trace`` when none of ``planners`` is a checked bundle planner.
@@ -146,7 +147,7 @@ def write_trace(world, planners: list, out: Path, limits=None) -> Path:
         raise ValueError(f"trace={world.name}: no checked planner to trace; pass planner=<bundle>")
     parts = []
     for p in checked:
-        episode, results = trace_scene(world, p, limits)
+        episode, results = trace_scene(world, p, limits, nudge_m)
         parts.append(trace_markdown(world.name, p.name, score_episode(world, episode),
                                     trace_rows(episode, results)))  # fmt: skip
     out = Path(out)
