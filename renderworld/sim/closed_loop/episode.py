@@ -1,7 +1,8 @@
 """One closed-loop episode: the planner drives the ego through a generated scene.
 
 The episode starts from the logged ego state after the history (keyframe ``H - 1``, 2.0 s for
-five history frames): the history frames are the logged ego's. Then, at every keyframe until
+five history frames; ``nudge_m`` further along its heading where asked): the history frames are
+the logged ego's. Then, at every keyframe until
 the scene's last: the planner gets an :class:`~renderworld.sim.closed_loop.planners.Observation`
 (occupancy rendered at the ego's actual poses if it reads occupancy, history in the current
 ego frame, the route's command), its plan is checked (shape [S, 2], S >= 1 waypoints 0.5 s
