@@ -45,7 +45,12 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from renderworld.sim.closed_loop.compare import average_runs, compare_runs, load_run  # noqa: E402
+from renderworld.sim.closed_loop.compare import (  # noqa: E402
+    average_runs,
+    compare_runs,
+    event_count,
+    load_run,
+)
 
 #: The development sets: name -> ``tools/drive.py`` arguments (docs/protocol.md).
 SETS = {
@@ -98,7 +103,7 @@ def summary(rows: pd.DataFrame) -> dict:
     return {
         "scenes": len(rows),
         "PDMS": float(rows["PDMS"].mean()),
-        "at_fault": float(rows["at_fault_collision"].astype(float).sum()),
+        "at_fault": event_count(rows["at_fault_collision"]),
         "comfort_fails": float((1.0 - rows["C"].astype(float)).sum()),
         "EP": float(rows["EP"].mean()),
         "TTC": float(rows["TTC"].mean()),

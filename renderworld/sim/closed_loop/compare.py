@@ -25,6 +25,7 @@ __all__ = [
     "average_runs",
     "compare_runs",
     "comparison_markdown",
+    "event_count",
     "load_run",
     "run_spread",
     "spread_markdown",
@@ -164,8 +165,8 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, top: int = 5) -> dict:
         out["PDMS_se"] = float(d.std(ddof=1) / len(d) ** 0.5) if len(d) > 1 else float("nan")
         out["up"], out["down"] = int((d > 1e-6).sum()), int((d < -1e-6).sum())
         for k in _EVENTS:  # scenes; on a side of several runs the mean count per run
-            out[f"{k}_a"] = _count(pa.loc[idx, k])
-            out[f"{k}_b"] = _count(pb.loc[idx, k])
+            out[f"{k}_a"] = event_count(pa.loc[idx, k])
+            out[f"{k}_b"] = event_count(pb.loc[idx, k])
         return out
 
     behaviours = {}
@@ -187,7 +188,7 @@ def compare_runs(a: pd.DataFrame, b: pd.DataFrame, top: int = 5) -> dict:
     }
 
 
-def _count(col: pd.Series) -> int | float:
+def event_count(col: pd.Series) -> int | float:
     """Scenes where an event happened: an int for one run's column of flags, the sum of the
     fractions of runs (a float) for an averaged side."""
     if col.dtype == bool or col.dtype == object:
